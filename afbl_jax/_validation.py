@@ -1,0 +1,51 @@
+"""Construction-time checks that skip traced values (so vmap/jit/grad still work)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+
+def concrete(x) -> np.ndarray | None:
+    """`x` as a NumPy array, or ``None`` when it is a JAX tracer (inside jit/vmap/grad)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+def check_finite(owner: str, name: str, x) -> None:
+    v = concrete(x)
+    if v is not None and not np.all(np.isfinite(v)):
+        raise ValueError(f"{owner}.{name} must be finite, got {v!r}.")
+
+
+def check_positive(owner: str, name: str, x, *, allow_inf: bool = False) -> None:
+    v = concrete(x)
+    if v is None:
+        return
+    if np.any(np.isnan(v)):
+        raise ValueError(f"{owner}.{name} must be a number > 0, got NaN ({v!r}).")
+    if not allow_inf and not np.all(np.isfinite(v)):
+        raise ValueError(f"{owner}.{name} must be finite and > 0, got {v!r}.")
+    if not np.all(v > 0):
+        raise ValueError(f"{owner}.{name} must be > 0, got {v!r}.")
+
+
+def check_nonnegative(owner: str, name: str, x) -> None:
+    v = concrete(x)
+    if v is None:
+        return
+    if np.any(np.isnan(v)) or not np.all(v >= 0):
+        raise ValueError(f"{owner}.{name} must be >= 0 (and not NaN), got {v!r}.")
+
+
+def check_last_dim(owner: str, name: str, x, size: int) -> None:
+    shape = np.shape(x)
+    if len(shape) == 0 or shape[-1] != size:
+        raise ValueError(
+            f"{owner}.{name} must have a last dimension of {size} (channel order phi, theta, "
+            f"psi, z), got shape {shape}."
+        )
