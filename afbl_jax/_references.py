@@ -59,13 +59,13 @@ class Reference(eqx.Module):
         sine_phase: shape (4,) [rad].
     """
 
-    offset: Float[Array, "4"] = eqx.field(converter=_as_float)
+    offset: Float[Array, 4] = eqx.field(converter=_as_float)
     step_start: Float[Array, "4 S"] = eqx.field(converter=_as_float)
     step_size: Float[Array, "4 S"] = eqx.field(converter=_as_float)
     step_duration: Float[Array, "4 S"] = eqx.field(converter=_as_float)
-    sine_amplitude: Float[Array, "4"] = eqx.field(converter=_as_float)
-    sine_frequency: Float[Array, "4"] = eqx.field(converter=_as_float)
-    sine_phase: Float[Array, "4"] = eqx.field(converter=_as_float)
+    sine_amplitude: Float[Array, 4] = eqx.field(converter=_as_float)
+    sine_frequency: Float[Array, 4] = eqx.field(converter=_as_float)
+    sine_phase: Float[Array, 4] = eqx.field(converter=_as_float)
 
     def __check_init__(self):
         owner = type(self).__name__

@@ -43,7 +43,7 @@ class Scenario(eqx.Module):
     disturbance: PulseDisturbance
     payload_fraction: Scalar = eqx.field(default=0.0, converter=_as_float)
     payload_time: Scalar = eqx.field(default=0.0, converter=_as_float)
-    initial_state: Float[Array, "12"] = eqx.field(
+    initial_state: Float[Array, 12] = eqx.field(
         default_factory=lambda: np.zeros(STATE_SIZE), converter=_as_float
     )
     t0: Scalar = eqx.field(default=0.0, converter=_as_float)

@@ -55,9 +55,9 @@ STATUS_MESSAGES = {
 class ClosedLoopState(eqx.Module):
     """The closed-loop ODE state; see the module docstring for the layout."""
 
-    plant: Float[Array, "12"]
-    controller: Float[Array, "4"]
-    cost: Float[Array, "3"]
+    plant: Float[Array, 12]
+    controller: Float[Array, 4]
+    cost: Float[Array, 3]
 
 
 class DivergenceLimits(eqx.Module):
@@ -79,13 +79,13 @@ class DivergenceLimits(eqx.Module):
 class Signals(eqx.Module):
     """Closed-loop signals at one instant (all derived from the ODE state)."""
 
-    reference: Float[Array, "4"]
-    error: Float[Array, "4"]
-    u_command: Float[Array, "4"]
-    u_applied: Float[Array, "4"]
-    rotor_speeds: Float[Array, "4"]
-    force: Float[Array, "3"]
-    torque: Float[Array, "3"]
+    reference: Float[Array, 4]
+    error: Float[Array, 4]
+    u_command: Float[Array, 4]
+    u_applied: Float[Array, 4]
+    rotor_speeds: Float[Array, 4]
+    force: Float[Array, 3]
+    torque: Float[Array, 3]
     mass: Scalar
 
 
