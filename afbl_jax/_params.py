@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from ._typing import Array
-from ._validation import check_nonnegative, check_positive
+from ._validation import check_nonnegative, check_positive, concrete
 
 
 def _as_float(x) -> Array:
@@ -33,6 +34,10 @@ class QuadrotorParams(eqx.Module):
         g: gravitational acceleration [m/s^2].
         omega_min: lowest rotor speed [rad/s], >= 0.
         omega_max: highest rotor speed [rad/s]; ``inf`` means unlimited.
+        gyro_sign: +1 (default) applies the rotor gyroscopic torque with the signs of eq. (14)
+            (rotors 1, 3 clockwise as the paper's text says); -1 flips it, which is the sign
+            consistent with the yaw-torque convention of eq. (12)/(16) (the paper is not
+            self-consistent here; see docs/paper_notes.md). Must be +1 or -1.
     """
 
     m: Array = eqx.field(default=0.650, converter=_as_float)
@@ -46,6 +51,7 @@ class QuadrotorParams(eqx.Module):
     g: Array = eqx.field(default=9.81, converter=_as_float)
     omega_min: Array = eqx.field(default=0.0, converter=_as_float)
     omega_max: Array = eqx.field(default=float("inf"), converter=_as_float)
+    gyro_sign: Array = eqx.field(default=1.0, converter=_as_float)
 
     def __check_init__(self):
         owner = type(self).__name__
@@ -54,8 +60,9 @@ class QuadrotorParams(eqx.Module):
         check_nonnegative(owner, "Jr", self.Jr)
         check_nonnegative(owner, "omega_min", self.omega_min)
         check_positive(owner, "omega_max", self.omega_max, allow_inf=True)
-        from ._validation import concrete
-
+        sign = concrete(self.gyro_sign)
+        if sign is not None and not np.all(np.abs(sign) == 1.0):
+            raise ValueError(f"{owner}.gyro_sign must be +1 or -1, got {sign}.")
         lo, hi = concrete(self.omega_min), concrete(self.omega_max)
         if lo is not None and hi is not None and not (lo < hi).all():
             raise ValueError(

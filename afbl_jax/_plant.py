@@ -20,8 +20,10 @@ plant state and `CHANNEL_RATE_INDEX` picks their rates.
 Differences from the printed eq. (15) (see docs/paper_notes.md):
 - roll/pitch torques are l*u1, l*u2 (eq. 12 and 24 have the arm length; eq. 15/16 drop it);
 - xdd, ydd use the third column of the ZYX rotation matrix (eq. 5 and 13 have typos);
-- gyroscopic term with Omega_d = -Omega1 + Omega2 - Omega3 + Omega4 (eq. 17) and
-  Bouabdallah's signs: phidd gets -(Jr/Ix) thetad Omega_d, thetadd gets +(Jr/Iy) phid Omega_d;
+- gyroscopic term with Omega_d = -Omega1 + Omega2 - Omega3 + Omega4 (eq. 17) and the signs of
+  eq. (14): phidd gets -(Jr/Ix) thetad Omega_d, thetadd gets +(Jr/Iy) phid Omega_d (times
+  ``QuadrotorParams.gyro_sign``, default +1; -1 gives the sign consistent with the yaw-torque
+  convention of eq. 12/16, see docs/paper_notes.md);
 - the yaw row's Euler coupling is phid*thetad*(Ix - Iy)/Iz (Euler's equation; eq. 15 prints
   thetad*psid).
 """
@@ -90,8 +92,9 @@ def plant_derivative(
 
     acc_lin = thrust_direction(phi, theta, psi) * u[3] / mass + force / mass
     acc_lin = acc_lin.at[2].add(-params.g)
-    phidd = thetad * psid * (Iy - Iz) / Ix - Jr / Ix * thetad * omega_d + (arm * u[0] + torque[0]) / Ix
-    thetadd = phid * psid * (Iz - Ix) / Iy + Jr / Iy * phid * omega_d + (arm * u[1] + torque[1]) / Iy
+    gyro = params.gyro_sign * Jr * omega_d
+    phidd = thetad * psid * (Iy - Iz) / Ix - gyro / Ix * thetad + (arm * u[0] + torque[0]) / Ix
+    thetadd = phid * psid * (Iz - Ix) / Iy + gyro / Iy * phid + (arm * u[1] + torque[1]) / Iy
     psidd = phid * thetad * (Ix - Iy) / Iz + (u[2] + torque[2]) / Iz
     return jnp.concatenate([state[6:12], acc_lin, jnp.stack([phidd, thetadd, psidd])])
 
