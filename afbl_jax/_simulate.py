@@ -255,6 +255,9 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
     )
     t0, t1 = scenario.t0, scenario.t1
     ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype) if n_save else None
+    # separate buffers: after an early stop the trajectory is padded with inf, and the final
+    # state (at the stop time) stays in its own slot
+    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
     stepsize = diffrax.ClipStepSizeController(
         diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=scenario.jump_times()
     )
@@ -266,19 +269,21 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         None,
         y0,
         args=args,
-        saveat=diffrax.SaveAt(ts=ts, t1=True),
+        saveat=diffrax.SaveAt(subs=saves),
         stepsize_controller=stepsize,
         max_steps=max_steps,
         event=diffrax.Event(_diverged),
         adjoint=adjoint,
         throw=False,
     )
-    ys = sol.ys
-    final = jax.tree.map(lambda a: a[-1], ys)
-    traj = jax.tree.map(lambda a: a[:-1], ys)
+    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
+    t_final = sol.ts[0][-1]
     if n_save:
-        signals = jax.vmap(lambda t, y: _signals_and_derivative(t, y, args)[0])(sol.ts[:-1], traj)
+        save_ts, traj = sol.ts[1], sol.ys[1]
+        signals = jax.vmap(lambda t, y: _signals_and_derivative(t, y, args)[0])(save_ts, traj)
     else:
+        save_ts = jnp.zeros((0,), dtype)
+        traj = jax.tree.map(lambda a: jnp.zeros((0, *a.shape), a.dtype), y0)
         signals = jax.tree.map(
             lambda a: jnp.zeros((0, *a.shape), a.dtype),
             _signals_and_derivative(t0, y0, args)[0],
@@ -296,7 +301,7 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         ),
     )
     return SimulationResult(
-        ts=sol.ts[:-1],
+        ts=save_ts,
         plant=traj.plant,
         controller_state=traj.controller,
         reference=signals.reference,
@@ -307,7 +312,7 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         disturbance_force=signals.force,
         disturbance_torque=signals.torque,
         final=final,
-        t_final=sol.ts[-1],
+        t_final=t_final,
         ise_attitude=final.cost[0],
         ise_altitude=final.cost[1],
         effort=final.cost[2],
