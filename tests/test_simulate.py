@@ -1,6 +1,5 @@
 """Closed loop: hand-computable ISE, scipy agreement, transforms (jit/vmap/grad), failures."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -172,7 +171,8 @@ def test_saturation_limits_rotor_speeds_in_closed_loop():
 
 def test_result_signals_are_consistent():
     r = A.simulate(A.FBLPID(), A.paper_scenario("uncertain", "step"), n_save=201)
-    np.testing.assert_allclose(r.error, r.reference - r.plant[:, np.array([3, 4, 5, 2])], atol=1e-14)
+    q = r.plant[:, np.array([3, 4, 5, 2])]
+    np.testing.assert_allclose(r.error, r.reference - q, atol=1e-14)
     np.testing.assert_allclose([r.ts[0], r.ts[-1]], [0.0, 20.0])
     np.testing.assert_allclose(r.rotor_speeds**2 @ np.full(4, float(A.QuadrotorParams().b)),
                                r.u_applied[:, 3], rtol=1e-12)
