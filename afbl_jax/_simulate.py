@@ -5,9 +5,12 @@ Closed-loop ODE state (`ClosedLoopState`)
 - ``plant``: shape (12,), layout `afbl_jax._plant.STATE_LAYOUT`;
 - ``controller``: the controller's own state, shape (4,), channels (phi, theta, psi, z):
   PID integrators for `FBLPID`, adaptive estimates delta_hat for `AFBL`/`AFBLPaper`;
-- ``cost``: running integrals, shape (3,): ``COST_LAYOUT`` = (ISE attitude eq. 42 [rad^2 s],
+- ``cost``: running integrals, shape (4,): ``COST_LAYOUT`` = (ISE attitude eq. 42 [rad^2 s],
   ISE altitude eq. 43 [m^2 s], control effort integral of |u - u_hover|^2 [mixed units^2 s],
-  u in (N, N, N m, N) and u_hover = (0, 0, 0, m_true g)).
+  u in (N, N, N m, N) and u_hover = (0, 0, 0, m_true g), saturation integral of
+  sum_i (excess_i / W_hover)^2 [s] where excess_i is how far the commanded squared rotor speed
+  W_i lies outside [omega_min^2, omega_max^2] and W_hover = m g / (4 b): zero while no rotor
+  saturates, smooth (C^1) in the gains, so it can serve as a penalty).
 
 Everything here is a pure function of arrays: `simulate` works under `jax.jit`, `jax.vmap`
 (over parameters, gains and scenario numbers) and `jax.grad` (of the ISE w.r.t. gains; the
@@ -23,7 +26,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._mixer import actuate, omega_d
+from ._mixer import (
+    inputs_from_rotor_speeds_sq,
+    omega_d,
+    rotor_speeds_sq_from_inputs,
+    safe_sqrt,
+    saturate_rotor_speeds_sq,
+)
 from ._params import QuadrotorParams
 from ._plant import CHANNEL_INDEX, hover_input, plant_derivative
 from ._scenarios import Scenario
@@ -31,7 +40,7 @@ from ._typing import Array, Float, Int, Scalar
 from ._validation import check_positive
 from .controllers import AbstractController
 
-COST_LAYOUT: tuple[str, ...] = ("ise_attitude", "ise_altitude", "effort")
+COST_LAYOUT: tuple[str, ...] = ("ise_attitude", "ise_altitude", "effort", "saturation")
 
 STATUS_OK = 0
 STATUS_DIVERGED = 1
@@ -100,13 +109,17 @@ class _Args(eqx.Module):
 def _signals_and_derivative(t, y: ClosedLoopState, args: _Args):
     ref = args.scenario.reference(t)
     u_cmd, dctrl = args.controller(t, y.plant, y.controller, ref, args.model)
-    u, omega = actuate(args.model, args.vehicle, u_cmd)
+    w_cmd = rotor_speeds_sq_from_inputs(args.model, u_cmd)
+    w = saturate_rotor_speeds_sq(args.vehicle, w_cmd)
+    u, omega = inputs_from_rotor_speeds_sq(args.vehicle, w), safe_sqrt(w)
+    w_hover = args.vehicle.m * args.vehicle.g / (4.0 * args.vehicle.b)
     force, torque = args.scenario.disturbance(t)
     mass = args.vehicle.m * args.scenario.mass_factor(t)
     dplant = plant_derivative(args.vehicle, y.plant, u, omega_d(omega), mass, force, torque)
     e = ref.r - y.plant[CHANNEL_INDEX]
     du = u - hover_input(args.vehicle, mass)
-    dcost = jnp.stack([jnp.sum(e[:3] ** 2), e[3] ** 2, jnp.sum(du**2)])
+    excess = (w_cmd - w) / w_hover  # zero unless a rotor is saturated
+    dcost = jnp.stack([jnp.sum(e[:3] ** 2), e[3] ** 2, jnp.sum(du**2), jnp.sum(excess**2)])
     signals = Signals(ref.r, e, u_cmd, u, omega, force, torque, mass)
     return signals, ClosedLoopState(dplant, dctrl, dcost)
 
@@ -141,7 +154,8 @@ class SimulationResult(eqx.Module):
         disturbance_force: (n_save, 3) [N]; disturbance_torque: (n_save, 3) [N m].
         final: closed-loop state at the end of the run (t1, or where it stopped).
         t_final: time the run ended [s].
-        ise_attitude, ise_altitude, effort: cost integrals at the end of the run.
+        ise_attitude, ise_altitude, effort, saturation: cost integrals at the end of the run
+            (`COST_LAYOUT`).
         status: 0 ok, 1 diverged, 2 max_steps reached, 3 other solver failure
             (`STATUS_MESSAGES` explains each).
         num_steps, num_accepted_steps, num_rejected_steps: solver statistics.
@@ -162,6 +176,7 @@ class SimulationResult(eqx.Module):
     ise_attitude: Scalar
     ise_altitude: Scalar
     effort: Scalar
+    saturation: Scalar
     status: Int[Array, ""]
     num_steps: Int[Array, ""]
     num_accepted_steps: Int[Array, ""]
@@ -316,6 +331,7 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         ise_attitude=final.cost[0],
         ise_altitude=final.cost[1],
         effort=final.cost[2],
+        saturation=final.cost[3],
         status=status.astype(jnp.int32),
         num_steps=jnp.asarray(sol.stats["num_steps"]),
         num_accepted_steps=jnp.asarray(sol.stats["num_accepted_steps"]),

@@ -167,6 +167,9 @@ def test_saturation_limits_rotor_speeds_in_closed_loop():
     r = A.simulate(A.AFBL(), A.paper_scenario("uncertain", "step"), vehicle, n_save=2001)
     assert float(np.max(r.rotor_speeds)) <= float(vehicle.omega_max) * (1 + 1e-9)
     assert np.any(r.u_applied[:, 3] < r.u_command[:, 3] - 1e-6)  # saturation was active
+    assert float(r.saturation) > 0
+    free = A.simulate(A.AFBL(), A.paper_scenario("uncertain", "step"), n_save=0)
+    assert float(free.saturation) == 0.0
 
 
 def test_result_signals_are_consistent():
