@@ -24,7 +24,6 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._mixer import (
     inputs_from_rotor_speeds_sq,
@@ -337,10 +336,3 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         num_accepted_steps=jnp.asarray(sol.stats["num_accepted_steps"]),
         num_rejected_steps=jnp.asarray(sol.stats["num_rejected_steps"]),
     )
-
-
-def summarize_status(status) -> dict[str, int]:
-    """Count runs by status name."""
-    s = np.asarray(status).reshape(-1)
-    return {name: int(np.sum(s == code)) for code, name in STATUS_MESSAGES.items() for name in
-            [STATUS_NAMES[code]]}
