@@ -4,6 +4,10 @@ from ._distribution import DEFAULT_DISTRIBUTION as DEFAULT_DISTRIBUTION
 from ._distribution import Distribution as Distribution
 from ._distribution import default_distribution as default_distribution
 from ._distribution import load_distribution as load_distribution
+from ._report import format_summary as format_summary
+from ._report import summarize as summarize
+from ._report import wilson_interval as wilson_interval
+from ._report import write_report as write_report
 from ._runner import METRIC_NAMES as METRIC_NAMES
 from ._runner import STRATEGIES as STRATEGIES
 from ._runner import SolverSettings as SolverSettings
@@ -17,3 +21,4 @@ from ._runner import table_columns as table_columns
 from ._sampler import INPUT_COLUMNS as INPUT_COLUMNS
 from ._sampler import CaseBatch as CaseBatch
 from ._sampler import sample_cases as sample_cases
+from ._study import run_study as run_study
