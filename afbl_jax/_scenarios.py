@@ -16,8 +16,8 @@ from ._disturbances import PulseDisturbance
 from ._plant import STATE_SIZE
 from ._references import Reference, make_reference
 from ._typing import Array, Float, Scalar
-from ._wind import Wind, no_wind
 from ._validation import check_finite, check_last_dim, concrete
+from ._wind import Wind, no_wind
 
 SCENARIO_KINDS = ("ideal", "uncertain")
 PROFILES = ("step", "sine")

@@ -53,7 +53,7 @@ DEFAULT_DISTRIBUTION: dict = {
         "airspeed": 5.0,  # [m/s] mean-wind speed that carries the frozen turbulence field
         "altitude": 10.0,  # [m]
         "n_frequencies": 32,
-        "omega_min": 0.02,  # [rad/s]
+        "omega_min": 0.005,  # [rad/s]
         "omega_max": 20.0,  # [rad/s]
     },
     "initial": {

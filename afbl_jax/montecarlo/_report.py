@@ -204,8 +204,9 @@ def figure_heatmaps(cols, n_bins: int = 6):
         for i, (data, title) in enumerate(((fail, "failure probability"),
                                            (med, "median ISE attitude (ok runs)"))):
             ax = axes[i, j]
+            limits = {"vmin": 0.0, "vmax": 1.0} if i == 0 else {}
             im = ax.imshow(data, origin="lower", aspect="auto",
-                           extent=(pe[0], pe[-1], ge[0], ge[-1]), cmap="viridis")
+                           extent=(pe[0], pe[-1], ge[0], ge[-1]), cmap="viridis", **limits)
             fig.colorbar(im, ax=ax)
             ax.set_title(f"{name}: {title}", fontsize=9)
             ax.set_xlabel("payload fraction p")
