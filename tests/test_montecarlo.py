@@ -314,3 +314,28 @@ def test_sharded_equals_unsharded():
     r = subprocess.run([sys.executable, "-c", SHARD_SCRIPT], capture_output=True, text=True,
                        env=env, timeout=900, cwd=Path(__file__).parent)
     assert r.returncode == 0 and "SHARDED_OK" in r.stdout, r.stderr[-3000:]
+
+
+def test_gust_couples_into_attitude_and_altitude():
+    """A +x / -z gust on a vehicle with drag and the centre of pressure above the CoM pitches
+    it positive (torque h F_x) and pushes it down; calm air with the same structure changes
+    nothing."""
+    base = A.Scenario(A.make_reference(), A.no_disturbance(), t1=4.0,
+                      wind=A.no_wind(1, 2))
+    gust = A.Scenario(A.make_reference(), A.no_disturbance(), t1=4.0,
+                      wind=Wind(jnp.array([0.5]), jnp.full((1, 3), 0.5),
+                                jnp.array([[6.0, 0.0, -3.0]]), jnp.zeros((3, 2)),
+                                jnp.zeros(2), jnp.zeros((3, 2))))
+    vehicle = A.QuadrotorParams(drag_coefficient=0.3, cp_offset=0.03)
+    calm = A.simulate(A.FBLPID(), base, vehicle, A.QuadrotorParams(), n_save=401)
+    windy = A.simulate(A.FBLPID(), gust, vehicle, A.QuadrotorParams(), n_save=401)
+    assert int(calm.status) == 0 and int(windy.status) == 0
+    np.testing.assert_allclose(calm.plant, 0.0, atol=1e-12)  # at rest in calm air
+    theta, z = np.asarray(windy.plant[:, 4]), np.asarray(windy.plant[:, 2])
+    assert theta.max() > 1e-3 and theta.max() > 10 * abs(theta.min())
+    assert z.min() < -1e-3
+    # x is not controlled: the vehicle drifts with the wind and the drag is c_d (w - v)
+    v_end = np.asarray(windy.plant[-1, 6:9])
+    np.testing.assert_allclose(windy.disturbance_force[-1],
+                               0.3 * (np.array([6.0, 0.0, -3.0]) - v_end), rtol=1e-9, atol=1e-12)
+    assert 0 < v_end[0] < 6.0

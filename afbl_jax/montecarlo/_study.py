@@ -4,6 +4,7 @@ write meta.json, report.md/html, summary.json and print the terminal summary."""
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import sys
 import time
@@ -36,6 +37,11 @@ def run_study(controllers: dict[str, AbstractController], distribution: Distribu
     summary = summarize(cols)
     config = json.loads((out / "run.json").read_text())
     meta = run_metadata(config)
+    for extra in ("pyarrow", "tqdm"):
+        try:
+            meta["versions"][extra] = importlib.metadata.version(extra)
+        except importlib.metadata.PackageNotFoundError:
+            meta["versions"][extra] = "not installed"
     meta["elapsed_seconds_this_invocation"] = elapsed
     meta["results_file"] = "results.parquet"
     (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
