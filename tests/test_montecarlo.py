@@ -210,6 +210,8 @@ def test_resume_after_interruption_is_identical(study, dist, controllers, tmp_pa
     monkeypatch.setattr(_runner, "run_chunk", real)
     mc.run_montecarlo(controllers, dist, N, SEED, run, chunk_size=CHUNK, progress=False)
     assert pq.read_table(run / "results.parquet").equals(pq.read_table(out / "results.parquet"))
+    log = [json.loads(x) for x in (run / "invocations.jsonl").read_text().splitlines()]
+    assert [e["chunks_already_done"] for e in log] == [0, 1]
     # a different configuration in the same folder is refused, not mixed in
     with pytest.raises(ValueError, match="different configuration"):
         mc.run_montecarlo(controllers, dist, N, SEED + 1, run, chunk_size=CHUNK, progress=False)
@@ -253,7 +255,8 @@ def test_report_numbers_recomputed_from_file(study):
     assert page.count("data:image/png;base64,") == 4 and p50 in page
     meta = json.loads((out / "meta.json").read_text())
     assert meta["config"]["seed"] == SEED and meta["config"]["n_cases"] == N
-    assert "git_revision" in meta and meta["versions"]["jax"]
+    assert "git_revision" in meta and meta["versions"]["jax"] and meta["versions"]["pyarrow"]
+    assert meta["invocations"][0]["chunks_already_done"] == 0
 
 
 def test_wilson_interval():

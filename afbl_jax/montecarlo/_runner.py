@@ -264,6 +264,18 @@ def run_montecarlo(
         chunk_dir.mkdir(parents=True, exist_ok=True)
         run_file.write_text(text)
     n_chunks = -(-int(n_cases) // chunk_size)
+    if out is not None:
+        # provenance of every invocation (a resumed run may span several code revisions)
+        import datetime as _dt
+
+        from .._meta import git_revision
+
+        done = sum((chunk_dir / f"chunk_{c:06d}.parquet").exists() for c in range(n_chunks))
+        entry = {"started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                 "git_revision": git_revision(), "chunks_already_done": int(done),
+                 "n_chunks": n_chunks}
+        with open(out / "invocations.jsonl", "a") as fh:
+            fh.write(json.dumps(entry) + "\n")
     tables = []
     bar = None
     if progress:

@@ -44,6 +44,8 @@ def run_study(controllers: dict[str, AbstractController], distribution: Distribu
             meta["versions"][extra] = "not installed"
     meta["elapsed_seconds_this_invocation"] = elapsed
     meta["results_file"] = "results.parquet"
+    meta["invocations"] = [json.loads(line) for line in
+                           (out / "invocations.jsonl").read_text().splitlines() if line]
     (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     if report:
         replays = replay_worst(cols, controllers, distribution, seed, k=min(5, n_cases),
