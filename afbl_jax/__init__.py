@@ -40,6 +40,8 @@ from ._simulate import SimulationResult as SimulationResult
 from ._simulate import closed_loop_vector_field as closed_loop_vector_field
 from ._simulate import simulate as simulate
 from ._simulate import status_message as status_message
+from ._wind import Wind as Wind
+from ._wind import no_wind as no_wind
 from .controllers import AFBL as AFBL
 from .controllers import CONTROLLERS as CONTROLLERS
 from .controllers import FBLPID as FBLPID

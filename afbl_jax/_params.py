@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._typing import Array
-from ._validation import check_nonnegative, check_positive, concrete
+from ._validation import check_finite, check_nonnegative, check_positive, concrete
 
 
 def _as_float(x) -> Array:
@@ -38,6 +38,10 @@ class QuadrotorParams(eqx.Module):
             (rotors 1, 3 clockwise as the paper's text says); -1 flips it, which is the sign
             consistent with the yaw-torque convention of eq. (12)/(16) (the paper is not
             self-consistent here; see docs/paper_notes.md). Must be +1 or -1.
+        drag_coefficient: linear aerodynamic drag c_d [N s/m], force c_d (wind - velocity);
+            default 0 (no aerodynamic force; see `afbl_jax._wind`).
+        cp_offset: centre of pressure above the centre of mass along body z [m], default 0
+            (the drag force then has no torque).
     """
 
     m: Array = eqx.field(default=0.650, converter=_as_float)
@@ -52,12 +56,16 @@ class QuadrotorParams(eqx.Module):
     omega_min: Array = eqx.field(default=0.0, converter=_as_float)
     omega_max: Array = eqx.field(default=float("inf"), converter=_as_float)
     gyro_sign: Array = eqx.field(default=1.0, converter=_as_float)
+    drag_coefficient: Array = eqx.field(default=0.0, converter=_as_float)
+    cp_offset: Array = eqx.field(default=0.0, converter=_as_float)
 
     def __check_init__(self):
         owner = type(self).__name__
         for name in ("m", "Ix", "Iy", "Iz", "b", "d", "arm_length", "g"):
             check_positive(owner, name, getattr(self, name))
         check_nonnegative(owner, "Jr", self.Jr)
+        check_nonnegative(owner, "drag_coefficient", self.drag_coefficient)
+        check_finite(owner, "cp_offset", self.cp_offset)
         check_nonnegative(owner, "omega_min", self.omega_min)
         check_positive(owner, "omega_max", self.omega_max, allow_inf=True)
         sign = concrete(self.gyro_sign)

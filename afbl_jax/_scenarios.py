@@ -17,6 +17,7 @@ from ._plant import STATE_SIZE
 from ._references import Reference, make_reference
 from ._typing import Array, Float, Scalar
 from ._validation import check_finite, check_last_dim, concrete
+from ._wind import Wind, no_wind
 
 SCENARIO_KINDS = ("ideal", "uncertain")
 PROFILES = ("step", "sine")
@@ -37,6 +38,8 @@ class Scenario(eqx.Module):
         payload_time: time the payload is attached [s] (<= t0 means the whole run).
         initial_state: plant state at t0, shape (12,), layout in `afbl_jax._plant`.
         t0, t1: time span [s].
+        wind: wind velocity field acting through the vehicle's aerodynamic model (default calm
+            air with no gusts and no turbulence; see `afbl_jax._wind`).
     """
 
     reference: Reference
@@ -48,6 +51,7 @@ class Scenario(eqx.Module):
     )
     t0: Scalar = eqx.field(default=0.0, converter=_as_float)
     t1: Scalar = eqx.field(default=20.0, converter=_as_float)
+    wind: Wind = eqx.field(default_factory=no_wind)
 
     def __check_init__(self):
         owner = type(self).__name__
@@ -72,6 +76,7 @@ class Scenario(eqx.Module):
                 self.disturbance.jump_times(),
                 self.reference.kink_times(),
                 jnp.atleast_1d(self.payload_time),
+                self.wind.jump_times(),
             ]
         )
 

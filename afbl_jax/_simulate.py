@@ -37,6 +37,7 @@ from ._plant import CHANNEL_INDEX, hover_input, plant_derivative
 from ._scenarios import Scenario
 from ._typing import Array, Float, Int, Scalar
 from ._validation import check_positive
+from ._wind import aerodynamic_wrench
 from .controllers import AbstractController
 
 COST_LAYOUT: tuple[str, ...] = ("ise_attitude", "ise_altitude", "effort", "saturation")
@@ -105,6 +106,14 @@ class _Args(eqx.Module):
     limits: DivergenceLimits
 
 
+def wind_wrench(t, plant: Array, scenario: Scenario, vehicle: QuadrotorParams):
+    """Aerodynamic (force [N] earth frame, torque [N m] on phi, theta, psi) of the scenario's
+    wind on the vehicle (`afbl_jax._wind.aerodynamic_wrench`); zero for the default calm air
+    and zero drag coefficient."""
+    return aerodynamic_wrench(scenario.wind(t), plant, vehicle.drag_coefficient,
+                              vehicle.cp_offset)
+
+
 def _signals_and_derivative(t, y: ClosedLoopState, args: _Args):
     ref = args.scenario.reference(t)
     u_cmd, dctrl = args.controller(t, y.plant, y.controller, ref, args.model)
@@ -113,6 +122,8 @@ def _signals_and_derivative(t, y: ClosedLoopState, args: _Args):
     u, omega = inputs_from_rotor_speeds_sq(args.vehicle, w), safe_sqrt(w)
     w_hover = args.vehicle.m * args.vehicle.g / (4.0 * args.vehicle.b)
     force, torque = args.scenario.disturbance(t)
+    wind_force, wind_torque = wind_wrench(t, y.plant, args.scenario, args.vehicle)
+    force, torque = force + wind_force, torque + wind_torque
     mass = args.vehicle.m * args.scenario.mass_factor(t)
     dplant = plant_derivative(args.vehicle, y.plant, u, omega_d(omega), mass, force, torque)
     e = ref.r - y.plant[CHANNEL_INDEX]

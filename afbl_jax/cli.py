@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_reproduce(sub)
+    from .montecarlo._study import add_subcommand as _add_montecarlo
+
+    _add_montecarlo(sub)
     return parser
 
 

@@ -1,0 +1,209 @@
+"""Sampling Monte-Carlo cases from a `Distribution`.
+
+Case i is drawn from its own key ``fold_in(PRNGKey(seed), i)``, so a case never depends on how
+many cases are drawn with it or on how they are chunked.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._disturbances import PulseDisturbance
+from .._params import QuadrotorParams
+from .._scenarios import Scenario, paper_reference
+from .._typing import Array
+from .._wind import TURBULENCE_INTENSITIES, Wind, dryden_amplitudes, turbulence_grid
+from ._distribution import Distribution
+
+INPUT_COLUMNS: tuple[str, ...] = (
+    "payload_fraction", "payload_time",
+    "inertia_scale", "thrust_coefficient_scale", "drag_coefficient_scale", "thrust_to_weight",
+    "drag_coefficient", "cp_offset",
+    "pulse_torque_phi", "pulse_torque_theta", "pulse_torque_psi", "pulse_torque_start",
+    "pulse_torque_duration", "pulse_force_z", "pulse_force_start", "pulse_force_duration",
+    "gust_amplitude_x", "gust_amplitude_y", "gust_amplitude_z", "gust_speed",
+    "gust_buildup_x", "gust_buildup_y", "gust_buildup_z", "gust_start",
+    "turbulence_level", "turbulence_sigma_w",
+    "initial_phi", "initial_theta", "initial_psi",
+    "initial_phid", "initial_thetad", "initial_psid",
+    "profile",
+)
+"""Sampled inputs recorded per case (SI units, rad). ``turbulence_level`` indexes
+`afbl_jax._wind.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine;
+``gust_speed`` = |gust amplitude vector| [m/s]; ``turbulence_sigma_w`` the vertical RMS [m/s]."""
+PROFILE_NAMES = ("step", "sine")
+
+
+class CaseBatch(eqx.Module):
+    """A batch of Monte-Carlo cases (leading axis = case).
+
+    Attributes:
+        scenario: batched `Scenario` (reference, pulses, payload, wind, initial state).
+        vehicle: batched true vehicle `QuadrotorParams`.
+        model: the controllers' nominal model (unbatched here; batched also accepted).
+        inputs: every sampled number per case, each of shape (n,) (`INPUT_COLUMNS`).
+        index: global case index of each row, shape (n,).
+    """
+
+    scenario: Scenario
+    vehicle: QuadrotorParams
+    model: QuadrotorParams
+    inputs: dict[str, Array]
+    index: Array
+
+    @property
+    def n_cases(self) -> int:
+        return int(np.shape(self.index)[0])
+
+    @property
+    def model_batched(self) -> bool:
+        return np.ndim(self.model.m) == 1
+
+    def take(self, indices) -> CaseBatch:
+        """The cases at positions ``indices`` (an int array or a slice) of this batch."""
+        if isinstance(indices, slice):
+            indices = np.arange(self.n_cases)[indices]
+        idx = jnp.asarray(indices)
+        pick = lambda x: x[idx]  # noqa: E731
+        model = jax.tree.map(pick, self.model) if self.model_batched else self.model
+        return CaseBatch(jax.tree.map(pick, self.scenario), jax.tree.map(pick, self.vehicle),
+                         model, {k: v[idx] for k, v in self.inputs.items()}, self.index[idx])
+
+    def __getitem__(self, indices) -> CaseBatch:
+        return self.take(indices)
+
+    def case(self, i: int) -> tuple[Scenario, QuadrotorParams, QuadrotorParams]:
+        """(scenario, vehicle, model) of row i, unbatched (for `afbl_jax.simulate`)."""
+        pick = lambda x: x[i]  # noqa: E731
+        model = jax.tree.map(pick, self.model) if self.model_batched else self.model
+        return jax.tree.map(pick, self.scenario), jax.tree.map(pick, self.vehicle), model
+
+
+def _uniform(key, rng, shape=()):
+    lo, hi = rng
+    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+
+
+def _categorical(key, probs: dict, names) -> Array:
+    p = np.array([float(probs.get(n, 0.0)) for n in names])
+    return jax.random.choice(key, len(names), p=jnp.asarray(p / p.sum()))
+
+
+def _sample_one(key, spec: dict, amp_table, omega, references):
+    k = iter(jax.random.split(key, 24))
+    pay, err, aero = spec["payload"], spec["model_error"], spec["aero"]
+    pul, gust, turb, ini = spec["pulses"], spec["gust"], spec["turbulence"], spec["initial"]
+    inputs = {}
+    inputs["payload_fraction"] = _uniform(next(k), pay["fraction"])
+    inputs["payload_time"] = _uniform(next(k), pay["attach_time"])
+    for name in ("inertia_scale", "thrust_coefficient_scale", "drag_coefficient_scale",
+                 "thrust_to_weight"):
+        inputs[name] = _uniform(next(k), err[name])
+    inputs["drag_coefficient"] = _uniform(next(k), aero["drag_coefficient"])
+    inputs["cp_offset"] = _uniform(next(k), aero["cp_offset"])
+
+    on = 1.0 if pul["enabled"] else 0.0
+    torque = on * _uniform(next(k), pul["torque"], (3,))
+    force_z = on * _uniform(next(k), pul["vertical_force"])
+    starts = _uniform(next(k), pul["start"], (2,))
+    durations = _uniform(next(k), pul["duration"], (2,))
+    for j, ax in enumerate(("phi", "theta", "psi")):
+        inputs[f"pulse_torque_{ax}"] = torque[j]
+    inputs["pulse_torque_start"], inputs["pulse_torque_duration"] = starts[0], durations[0]
+    inputs["pulse_force_z"] = force_z
+    inputs["pulse_force_start"], inputs["pulse_force_duration"] = starts[1], durations[1]
+    zero3 = jnp.zeros(3)
+    pulses = PulseDisturbance(
+        starts, durations, jnp.stack([torque, zero3]),
+        jnp.stack([zero3, jnp.array([0.0, 0.0, 1.0]) * force_z]),
+    )
+
+    g_on = 1.0 if gust["enabled"] else 0.0
+    mag = jnp.concatenate([_uniform(next(k), gust["horizontal_amplitude"], (2,)),
+                           _uniform(next(k), gust["vertical_amplitude"], (1,))])
+    sign = jnp.where(jax.random.bernoulli(next(k), 0.5, (3,)), 1.0, -1.0)
+    amp = g_on * mag * sign
+    buildup = _uniform(next(k), gust["buildup_time"], (3,))
+    g_start = _uniform(next(k), gust["start"])
+    for j, ax in enumerate("xyz"):
+        inputs[f"gust_amplitude_{ax}"] = amp[j]
+        inputs[f"gust_buildup_{ax}"] = buildup[j]
+    inputs["gust_speed"] = jnp.sqrt(jnp.sum(amp**2))
+    inputs["gust_start"] = g_start
+
+    if turb["enabled"]:
+        level = _categorical(next(k), turb["intensity_probabilities"], TURBULENCE_INTENSITIES)
+    else:
+        level = jnp.asarray(0)
+    phase = jax.random.uniform(next(k), (3, len(omega)), maxval=2.0 * jnp.pi)
+    t_amp = jnp.asarray(amp_table)[level]
+    inputs["turbulence_level"] = level
+    inputs["turbulence_sigma_w"] = jnp.sqrt(0.5 * jnp.sum(t_amp[2] ** 2))
+    wind = Wind(g_start[None], buildup[None], amp[None], t_amp, jnp.asarray(omega), phase)
+
+    att = _uniform(next(k), ini["attitude"], (3,))
+    rate = _uniform(next(k), ini["rate"], (3,))
+    for j, ax in enumerate(("phi", "theta", "psi")):
+        inputs[f"initial_{ax}"] = att[j]
+        inputs[f"initial_{ax}d"] = rate[j]
+    initial = jnp.zeros(12).at[3:6].set(att).at[9:12].set(rate)
+
+    profile = _categorical(next(k), spec["reference"]["profile_probabilities"], PROFILE_NAMES)
+    inputs["profile"] = profile
+    reference = jax.tree.map(lambda *refs: jnp.stack(refs)[profile], *references)
+
+    scenario = Scenario(reference, pulses, inputs["payload_fraction"], inputs["payload_time"],
+                        initial, 0.0, spec["time"]["t1"], wind)
+    nominal = QuadrotorParams()
+    omega_max = jnp.sqrt(inputs["thrust_to_weight"] * nominal.m * nominal.g / (4.0 * nominal.b))
+    vehicle = eqx.tree_at(
+        lambda p: (p.Ix, p.Iy, p.Iz, p.b, p.d, p.omega_max, p.drag_coefficient, p.cp_offset),
+        nominal,
+        (nominal.Ix * inputs["inertia_scale"], nominal.Iy * inputs["inertia_scale"],
+         nominal.Iz * inputs["inertia_scale"], nominal.b * inputs["thrust_coefficient_scale"],
+         nominal.d * inputs["drag_coefficient_scale"], omega_max, inputs["drag_coefficient"],
+         inputs["cp_offset"]),
+    )
+    return scenario, vehicle, inputs
+
+
+def nominal_model(distribution: Distribution) -> QuadrotorParams:
+    """The controllers' nominal model: Table 1 with the distribution's nominal T/W limit."""
+    del distribution
+    return QuadrotorParams()
+
+
+def sample_cases(distribution: Distribution, n_cases: int, seed: int,
+                 start: int = 0) -> CaseBatch:
+    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed``.
+
+    Case i uses the key ``fold_in(PRNGKey(seed), i)`` only, so it is the same in every batch.
+    """
+    if isinstance(n_cases, bool) or int(n_cases) < 1:
+        raise ValueError(f"n_cases must be an integer >= 1, got {n_cases!r}.")
+    if int(start) < 0:
+        raise ValueError(f"start must be >= 0, got {start!r}.")
+    index = jnp.arange(int(start), int(start) + int(n_cases))
+    base = jax.random.PRNGKey(int(seed))
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+    scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
+    return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index)
+
+
+@functools.lru_cache(maxsize=8)
+def _batch_sampler(distribution: Distribution):
+    """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
+    spec = distribution.spec
+    turb = spec["turbulence"]
+    omega, domega = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    amp_table = np.stack([
+        dryden_amplitudes(name, turb["altitude"], turb["airspeed"], omega, domega)
+        for name in TURBULENCE_INTENSITIES
+    ])
+    references = [paper_reference(p) for p in PROFILE_NAMES]
+    return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, amp_table, omega, references)))
