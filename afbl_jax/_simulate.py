@@ -37,6 +37,7 @@ from ._params import QuadrotorParams
 from ._plant import CHANNEL_INDEX, hover_input, plant_derivative
 from ._scenarios import Scenario
 from ._typing import Array, Float, Int, Scalar
+from ._unmodeled import UnmodeledDynamics, simulate_unmodeled
 from ._validation import check_positive
 from .controllers import AbstractController
 
@@ -218,6 +219,7 @@ def simulate(
     max_steps: int = 16384,
     limits: DivergenceLimits | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    unmodeled: UnmodeledDynamics | None = None,
 ) -> SimulationResult:
     """Simulate one closed-loop case.
 
@@ -233,6 +235,9 @@ def simulate(
         limits: divergence limits (default `DivergenceLimits()`): crossing them stops the run
             with status 1.
         adjoint: diffrax adjoint for gradients (default `RecursiveCheckpointAdjoint`).
+        unmodeled: unmodeled dynamics (full rigid-body plant, motor lag, digital control with
+            noise and delay; `afbl_jax._unmodeled` documents the settings and state layouts).
+            None (default): the paper's model with a continuous controller, as always.
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
@@ -243,6 +248,12 @@ def simulate(
     check_positive("simulate", "atol", atol)
     if int(n_save) < 0 or int(max_steps) <= 0:
         raise ValueError(f"n_save must be >= 0 and max_steps > 0, got {n_save}, {max_steps}.")
+    if unmodeled is not None:
+        return simulate_unmodeled(
+            controller, scenario, vehicle, model, limits, unmodeled, get_solver(solver),
+            float(rtol), float(atol), int(n_save), int(max_steps),
+            adjoint or diffrax.RecursiveCheckpointAdjoint(),
+        )
     return _simulate(
         controller,
         scenario,
