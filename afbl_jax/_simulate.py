@@ -12,6 +12,10 @@ Closed-loop ODE state (`ClosedLoopState`)
   W_i lies outside [omega_min^2, omega_max^2] and W_hover = m g / (4 b): zero while no rotor
   saturates, smooth (C^1) in the gains, so it can serve as a penalty).
 
+With ``simulate(..., unmodeled=UnmodeledDynamics(...))`` the closed-loop state is
+`afbl_jax._unmodeled.UnmodeledState` (plant, rotors, controller, cost); the settings, the full
+plant's state layout and the digital-control loop are documented in `afbl_jax._unmodeled`.
+
 Everything here is a pure function of arrays: `simulate` works under `jax.jit`, `jax.vmap`
 (over parameters, gains and scenario numbers) and `jax.grad` (of the ISE w.r.t. gains; the
 adjoint is diffrax's `RecursiveCheckpointAdjoint`: discretise-then-optimise, the exact gradient

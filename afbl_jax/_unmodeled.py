@@ -214,6 +214,17 @@ class UnmodeledDynamics(eqx.Module):
                           r, r, r])
 
 
+def unmodeled_config(settings: UnmodeledDynamics) -> dict:
+    """Plain-JSON description of (unbatched) settings, for result-file metadata."""
+    out: dict = {"plant": settings.plant, "max_samples": settings.max_samples,
+                 "max_delay": settings.max_delay}
+    for name in ("motor_tau", "control_rate", "delay_samples", *NOISE_FIELDS):
+        out[name] = np.asarray(getattr(settings, name)).tolist()
+    out["key"] = np.asarray(settings.key).tolist()
+    out["digital"] = settings.digital
+    return out
+
+
 def stack_unmodeled(settings: list[UnmodeledDynamics]) -> UnmodeledDynamics:
     """Stack settings with equal static fields along a new leading axis (for `jax.vmap`)."""
     if not settings:
