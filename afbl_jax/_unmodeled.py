@@ -191,12 +191,16 @@ class UnmodeledDynamics(eqx.Module):
         noise_vertical_speed: float = 0.0,
         seed: int = 0,
         max_delay: int | None = None,
+        max_samples: int | None = None,
     ) -> UnmodeledDynamics:
         """Convenience constructor: ``control_rate`` None = continuous controller, else a
         digital controller at that rate [Hz] with ``max_samples = ceil(duration * rate)``
-        (``duration`` = t1 - t0 of the scenarios it will run [s])."""
-        max_samples = 0 if control_rate is None else int(math.ceil(duration * control_rate
-                                                                    - 1e-9))
+        (``duration`` = t1 - t0 of the scenarios it will run [s]) unless given (a common
+        ``max_samples`` lets settings with different rates share one batch / compilation)."""
+        if control_rate is None:
+            max_samples = 0
+        elif max_samples is None:
+            max_samples = int(math.ceil(duration * control_rate - 1e-9))
         return cls(
             plant=plant, motor_tau=motor_tau, max_samples=max_samples,
             control_rate=1000.0 if control_rate is None else control_rate,
