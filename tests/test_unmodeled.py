@@ -19,7 +19,11 @@ def _short(scenario, t1):
 
 
 def _zero_ref_scenario(initial, t1):
-    return A.Scenario(A.make_reference(), A.no_disturbance(), initial_state=initial, t1=t1)
+    """Zero reference, no disturbance; same pytree structure as the canonical scenarios (so
+    every test shares the compiled `_sim_traj`)."""
+    sc = _short(A.paper_scenario("ideal", "step"), t1)
+    sc = eqx.tree_at(lambda s: s.reference.step_size, sc, jnp.zeros_like(sc.reference.step_size))
+    return eqx.tree_at(lambda s: s.initial_state, sc, jnp.asarray(initial, dtype=float))
 
 
 MAX_SAMPLES = 1200
