@@ -69,9 +69,9 @@ through the scan and diffrax's checkpointed adjoint).
 In digital mode ``simulate``'s ``max_steps`` is the step budget of each sample interval, and
 ``num_steps`` etc. are totals over the run. Measured cost (2 shared cores, float64): a 20 s
 canonical run at 250 Hz takes 0.1-0.2 s after compilation (about 5000 inner solves of 1 step
-each), the continuous loop 0.02 s; compilation of the digital loop takes 3-15 s. An alternative
-(one diffrax solve with the held command as a state updated at the sample times) is not
-possible without stopping the solve at each sample, which is what the scan does.
+each), the continuous loop 0.02 s; compiling the digital loop takes 3-30 s (machine load).
+An alternative (one diffrax solve with the held command as a state updated at the sample
+times) needs the solve stopped at each sample anyway, which is what the scan does.
 
 Trajectory outputs in digital mode are linear interpolations of the states at the sample times
 (exact at the sample times); ``u_command`` is the held command.
