@@ -50,3 +50,15 @@ from .controllers import AFBLPaper as AFBLPaper
 from .controllers import make_controller as make_controller
 
 __version__ = "0.1.0"
+
+# unmodeled dynamics (issue 6)
+from ._unmodeled import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT  # noqa: E402
+from ._unmodeled import PLANT_MODELS as PLANT_MODELS  # noqa: E402
+from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics  # noqa: E402
+from ._unmodeled import UnmodeledState as UnmodeledState  # noqa: E402
+from ._unmodeled import body_rates_from_euler_rates as body_rates_from_euler_rates  # noqa: E402
+from ._unmodeled import euler_rates_from_body_rates as euler_rates_from_body_rates  # noqa: E402
+from ._unmodeled import full_plant_derivative as full_plant_derivative  # noqa: E402
+from ._unmodeled import measure as measure  # noqa: E402
+from ._unmodeled import measurement_noise as measurement_noise  # noqa: E402
+from ._unmodeled import stack_unmodeled as stack_unmodeled  # noqa: E402

@@ -14,6 +14,11 @@ xd ... psid: their time derivatives [m/s], [rad/s].
 The closed-loop ODE state (`ClosedLoopState` in `afbl_jax._simulate`) is this plant state plus
 the controller's own states and the running cost integrals.
 
+The full rigid-body plant (`afbl_jax._unmodeled`, ``simulate(..., unmodeled=...)`` with
+``plant="full"``) uses the same layout except that entries 9-11 are the body rates (p, q, r)
+[rad/s] (``FULL_STATE_LAYOUT``); with motor lag the rotor speeds are extra ODE states beside
+the plant state (`afbl_jax._unmodeled.UnmodeledState`).
+
 Controller channels are always ordered (phi, theta, psi, z); `CHANNEL_INDEX` picks them from the
 plant state and `CHANNEL_RATE_INDEX` picks their rates.
 

@@ -18,6 +18,7 @@ from ._meta import run_metadata
 from ._params import QuadrotorParams
 from ._scenarios import PROFILES, SCENARIO_KINDS, paper_scenario, stack_scenarios
 from ._simulate import STATUS_NAMES, SimulationResult, simulate, status_message
+from ._unmodeled import UnmodeledDynamics, unmodeled_config
 from .controllers import AbstractController, make_controller
 
 SCENARIO_KEYS: tuple[str, ...] = tuple(f"{k}_{p}" for k in SCENARIO_KINDS for p in PROFILES)
@@ -75,9 +76,11 @@ def run_reproduction(
     rtol: float = 1e-8,
     atol: float = 1e-10,
     n_save: int = 2001,
+    unmodeled: UnmodeledDynamics | None = None,
 ) -> ReproductionResult:
     """Run every canonical scenario for every controller (default: fbl, afbl, afbl_paper with
-    the paper's gains)."""
+    the paper's gains); ``unmodeled`` (default None: the paper's model) is passed to
+    `simulate`."""
     if controllers is None:
         controllers = {name: make_controller(name) for name in DEFAULT_CONTROLLERS}
     pairs = [(k, p) for k in SCENARIO_KINDS for p in PROFILES]
@@ -87,7 +90,7 @@ def run_reproduction(
 
         def one(scenario, ctrl=ctrl):
             return simulate(ctrl, scenario, vehicle, solver=solver, rtol=rtol, atol=atol,
-                            n_save=n_save)
+                            n_save=n_save, unmodeled=unmodeled)
 
         batched = jax.vmap(one)(batch)
         for i, key in enumerate(SCENARIO_KEYS):
@@ -100,6 +103,8 @@ def run_reproduction(
         "controllers": {n: c.gains() for n, c in controllers.items()},
         "vehicle": {k: float(v) for k, v in _fields(vehicle or QuadrotorParams()).items()},
     }
+    if unmodeled is not None:
+        config["unmodeled"] = unmodeled_config(unmodeled)
     return ReproductionResult(runs, dict(controllers), config)
 
 

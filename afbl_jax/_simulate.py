@@ -12,6 +12,10 @@ Closed-loop ODE state (`ClosedLoopState`)
   W_i lies outside [omega_min^2, omega_max^2] and W_hover = m g / (4 b): zero while no rotor
   saturates, smooth (C^1) in the gains, so it can serve as a penalty).
 
+With ``simulate(..., unmodeled=UnmodeledDynamics(...))`` the closed-loop state is
+`afbl_jax._unmodeled.UnmodeledState` (plant, rotors, controller, cost); the settings, the full
+plant's state layout and the digital-control loop are documented in `afbl_jax._unmodeled`.
+
 Everything here is a pure function of arrays: `simulate` works under `jax.jit`, `jax.vmap`
 (over parameters, gains and scenario numbers) and `jax.grad` (of the ISE w.r.t. gains; the
 adjoint is diffrax's `RecursiveCheckpointAdjoint`: discretise-then-optimise, the exact gradient
@@ -36,8 +40,9 @@ from ._params import QuadrotorParams
 from ._plant import CHANNEL_INDEX, hover_input, plant_derivative
 from ._scenarios import Scenario
 from ._typing import Array, Float, Int, Scalar
+from ._unmodeled import UnmodeledDynamics, simulate_unmodeled
 from ._validation import check_positive
-from ._wind import aerodynamic_wrench
+from ._wind import wind_wrench
 from .controllers import AbstractController
 
 COST_LAYOUT: tuple[str, ...] = ("ise_attitude", "ise_altitude", "effort", "saturation")
@@ -104,14 +109,6 @@ class _Args(eqx.Module):
     vehicle: QuadrotorParams
     model: QuadrotorParams
     limits: DivergenceLimits
-
-
-def wind_wrench(t, plant: Array, scenario: Scenario, vehicle: QuadrotorParams):
-    """Aerodynamic (force [N] earth frame, torque [N m] on phi, theta, psi) of the scenario's
-    wind on the vehicle (`afbl_jax._wind.aerodynamic_wrench`); zero for the default calm air
-    and zero drag coefficient."""
-    return aerodynamic_wrench(scenario.wind(t), plant, vehicle.drag_coefficient,
-                              vehicle.cp_offset)
 
 
 def _signals_and_derivative(t, y: ClosedLoopState, args: _Args):
@@ -228,6 +225,7 @@ def simulate(
     max_steps: int = 16384,
     limits: DivergenceLimits | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    unmodeled: UnmodeledDynamics | None = None,
 ) -> SimulationResult:
     """Simulate one closed-loop case.
 
@@ -243,6 +241,9 @@ def simulate(
         limits: divergence limits (default `DivergenceLimits()`): crossing them stops the run
             with status 1.
         adjoint: diffrax adjoint for gradients (default `RecursiveCheckpointAdjoint`).
+        unmodeled: unmodeled dynamics (full rigid-body plant, motor lag, digital control with
+            noise and delay; `afbl_jax._unmodeled` documents the settings and state layouts).
+            None (default): the paper's model with a continuous controller, as always.
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
@@ -253,6 +254,12 @@ def simulate(
     check_positive("simulate", "atol", atol)
     if int(n_save) < 0 or int(max_steps) <= 0:
         raise ValueError(f"n_save must be >= 0 and max_steps > 0, got {n_save}, {max_steps}.")
+    if unmodeled is not None:
+        return simulate_unmodeled(
+            controller, scenario, vehicle, model, limits, unmodeled, get_solver(solver),
+            float(rtol), float(atol), int(n_save), int(max_steps),
+            adjoint or diffrax.RecursiveCheckpointAdjoint(),
+        )
     return _simulate(
         controller,
         scenario,

@@ -194,3 +194,12 @@ def aerodynamic_wrench(wind_velocity: Vec3, state: PlantState, drag_coefficient,
     zero = jnp.zeros_like(cp_offset)
     torque = jnp.stack([-cp_offset * f_body[1], cp_offset * f_body[0], zero])
     return force, torque
+
+
+def wind_wrench(t, plant: PlantState, scenario, vehicle) -> tuple[Vec3, Vec3]:
+    """Aerodynamic (force [N] earth frame, torque [N m] on phi, theta, psi) of the scenario's
+    wind on the vehicle (`aerodynamic_wrench` with the vehicle's drag coefficient and centre of
+    pressure); zero for the default calm air and zero drag coefficient. Plant velocities
+    (entries 6-8) are earth-frame in every plant layout."""
+    return aerodynamic_wrench(scenario.wind(t), plant, vehicle.drag_coefficient,
+                              vehicle.cp_offset)

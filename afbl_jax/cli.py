@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._unmodeled_cli import add_unmodeled_arguments, add_unmodeled_subcommand, unmodeled_from_args
+
 
 def _enable_x64() -> None:
     import jax
@@ -31,6 +33,7 @@ def _add_reproduce(sub) -> None:
     p.add_argument("--atol", type=float, default=1e-10)
     p.add_argument("--n-save", type=int, default=2001, help="saved samples per run (>= 2)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    add_unmodeled_arguments(p)
     p.set_defaults(func=_cmd_reproduce)
 
 
@@ -59,7 +62,7 @@ def _cmd_reproduce(args) -> int:
     print(f"running {len(controllers)} controllers x 4 scenarios ({args.solver}, rtol="
           f"{args.rtol:g}, atol={args.atol:g}) ...", flush=True)
     result = run_reproduction(controllers, solver=args.solver, rtol=args.rtol, atol=args.atol,
-                              n_save=args.n_save)
+                              n_save=args.n_save, unmodeled=unmodeled_from_args(args))
     args.out.mkdir(parents=True, exist_ok=True)
     write_ise_json(result, args.out / "ise.json")
     print(format_ise_table(result))
@@ -82,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .montecarlo._study import add_subcommand as _add_montecarlo
 
     _add_montecarlo(sub)
+    add_unmodeled_subcommand(sub)
     return parser
 
 
