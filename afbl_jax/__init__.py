@@ -48,3 +48,9 @@ from .controllers import AFBLPaper as AFBLPaper
 from .controllers import make_controller as make_controller
 
 __version__ = "0.1.0"
+
+# gain tuning (issue 4)
+from . import tuning as tuning
+from .tuning import TuneConfig as TuneConfig
+from .tuning import run_tuning as run_tuning
+from .tuning import tune as tune

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .tuning._study import add_tune_parser
+
 
 def _enable_x64() -> None:
     import jax
@@ -79,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_reproduce(sub)
+    add_tune_parser(sub)
     return parser
 
 
