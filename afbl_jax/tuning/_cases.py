@@ -8,8 +8,8 @@ The returned `TuningCases` has the fields of the Monte-Carlo ``CaseBatch`` that 
 uses: ``scenario`` (a `Scenario` batched on axis 0), ``vehicle`` (batched true vehicle),
 ``model`` (the controller's nominal model, unbatched) and ``inputs`` (the sampled numbers).
 
-Distribution (each case drawn from ``jax.random.fold_in(PRNGKey(seed), i)``, so case i is the
-same whatever the batch size n):
+Distribution (case i drawn from ``numpy.random.default_rng([seed, i])``, so case i is the same
+whatever the batch size n):
 
 - reference profile: the paper's ``step`` or ``sine`` attitude profile with probability 1/2
   (altitude 0 -> 1 -> 0 m in both), initial attitude (0.05, -0.05, 0.05) rad, 0-20 s;
@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._disturbances import PulseDisturbance
 from .._params import QuadrotorParams
 from .._plant import STATE_SIZE
 from .._scenarios import (
@@ -37,7 +38,6 @@ from .._scenarios import (
     Scenario,
     paper_disturbance,
     paper_reference,
-    stack_scenarios,
 )
 
 DEFAULT_THRUST_TO_WEIGHT = 2.5
@@ -71,13 +71,13 @@ def nominal_vehicle(thrust_to_weight: float | None = DEFAULT_THRUST_TO_WEIGHT) -
         thrust_to_weight)
 
 
-def _sample_one(key, nominal: QuadrotorParams):
-    k = jax.random.split(key, 5)
-    profile = jax.random.bernoulli(k[0]).astype(int)
-    payload = jax.random.uniform(k[1], (), minval=0.0, maxval=0.5)
-    scales = jax.random.uniform(k[2], (5,), minval=0.9, maxval=1.1)  # Ix, Iy, Iz, b, d
-    torque_amp = jax.random.uniform(k[3], (3,))
-    force_amp = jax.random.uniform(k[4], ())
+def _sample_one(seed: int, i: int):
+    rng = np.random.default_rng([int(seed), int(i)])  # case i depends on (seed, i) only
+    profile = int(rng.integers(0, 2))
+    payload = rng.uniform(0.0, 0.5)
+    scales = rng.uniform(0.9, 1.1, size=5)  # Ix, Iy, Iz, b, d
+    torque_amp = rng.uniform(0.0, 1.0, size=3)
+    force_amp = rng.uniform(0.0, 1.0)
     return profile, payload, scales, torque_amp, force_amp
 
 
@@ -91,24 +91,24 @@ def training_cases(
     if int(n) < 1:
         raise ValueError(f"training_cases: n must be >= 1, got {n}.")
     nominal = nominal_vehicle(thrust_to_weight)
-    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(int(seed)), i))(
-        jnp.arange(int(n)))
+    draws = [_sample_one(seed, i) for i in range(int(n))]
     profile, payload, scales, torque_amp, force_amp = (
-        np.asarray(a) for a in jax.vmap(lambda k: _sample_one(k, nominal))(keys))
+        np.array([d[j] for d in draws]) for j in range(5))
+    n = int(n)
     initial = np.zeros(STATE_SIZE)
     initial[3:6] = PAPER_INITIAL_ATTITUDE
-    refs = {p: paper_reference(p) for p in PROFILES}
+    refs = [paper_reference(p) for p in PROFILES]  # same structure: select per case
+    reference = jax.tree.map(lambda *xs: jnp.stack(xs)[profile], *refs)
     base = paper_disturbance("uncertain")
-    scenarios = []
-    for i in range(int(n)):
-        torque = np.asarray(base.torque) * np.concatenate([torque_amp[i][None], np.zeros((1, 3))])
-        force = np.asarray(base.force) * np.array([[0.0], [force_amp[i]]])
-        dist = eqx.tree_at(lambda d: (d.torque, d.force), base, (jnp.asarray(torque),
-                                                                  jnp.asarray(force)))
-        scenarios.append(Scenario(
-            reference=refs[PROFILES[int(profile[i])]], disturbance=dist,
-            payload_fraction=float(payload[i]), payload_time=0.0, initial_state=initial,
-            t0=0.0, t1=20.0))
+    amp_torque = np.stack([torque_amp, np.zeros((n, 3))], axis=1)  # (n, pulses, 3)
+    amp_force = np.stack([np.zeros(n), force_amp], axis=1)[..., None]
+    disturbance = PulseDisturbance(
+        np.broadcast_to(base.start, (n, 2)), np.broadcast_to(base.duration, (n, 2)),
+        np.asarray(base.torque) * amp_torque, np.asarray(base.force) * amp_force)
+    scenario = Scenario(
+        reference=reference, disturbance=disturbance, payload_fraction=payload,
+        payload_time=np.zeros(n), initial_state=np.broadcast_to(initial, (n, STATE_SIZE)),
+        t0=np.zeros(n), t1=np.full(n, 20.0))
     ones = np.ones(int(n))
     vehicle = QuadrotorParams(
         m=nominal.m * ones, Ix=nominal.Ix * scales[:, 0], Iy=nominal.Iy * scales[:, 1],
@@ -126,4 +126,4 @@ def training_cases(
         "torque_pulse_scale": torque_amp,
         "force_pulse_scale": force_amp,
     }
-    return TuningCases(stack_scenarios(scenarios), vehicle, nominal, inputs)
+    return TuningCases(scenario, vehicle, nominal, inputs)

@@ -48,10 +48,17 @@ import jax.numpy as jnp
 from .._params import QuadrotorParams
 from .._scenarios import PROFILES, SCENARIO_KINDS, paper_scenario, stack_scenarios
 from .._simulate import STATUS_OK, simulate
-from ..controllers import CONTROLLERS, AbstractController, make_controller
+from ..controllers import CONTROLLERS, AbstractController
+from ..controllers.afbl import DEFAULT_LAMBDA, PAPER_AFBL_GAINS
+from ..controllers.fbl_pid import PAPER_FBL_GAINS
 from ._cases import DEFAULT_THRUST_TO_WEIGHT, TuningCases, nominal_vehicle, training_cases
 
 TUNABLE_CONTROLLERS = ("afbl", "fbl")
+PAPER_GAINS = {
+    "afbl": {**PAPER_AFBL_GAINS, "lam": DEFAULT_LAMBDA},
+    "fbl": dict(PAPER_FBL_GAINS),
+}
+"""Centre of the default gain box: Tables 2/3 (and lambda = 4 1/s, our default)."""
 OBJECTIVES = ("nominal", "robust")
 RISKS = ("mean", "cvar")
 
@@ -79,7 +86,8 @@ class GainSpace:
             raise ValueError(f"GainSpace: need 0 < lower <= 1 <= upper < inf, got lower="
                              f"{self.lower}, upper={self.upper}.")
         if self.base is None:
-            object.__setattr__(self, "base", make_controller(self.controller).gains())
+            object.__setattr__(self, "base", {k: list(v) for k, v in PAPER_GAINS[
+                self.controller].items()})
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -125,26 +126,8 @@ class Tuner:
         self.cases = cases if cases is not None else cases_for(
             config.objective, config.n_cases, config.seed, config.thrust_to_weight)
         self.optimizer = make_optimizer(config)
-        lo, hi = self.space.bounds()
-        space, ocfg, optimizer = self.space, config.objective, self.optimizer
-
-        def loss_fn(params, cases):
-            return objective(params, space, cases, ocfg)
-
-        self.value_and_grad = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
-
-        def update(params, opt_state, grads):
-            leaves = jax.tree.leaves(grads)
-            nonfinite = sum(jnp.sum(~jnp.isfinite(g)) for g in leaves)
-            finite = [jnp.where(jnp.isfinite(g), g, 0.0) for g in leaves]
-            grad_norm = jnp.sqrt(sum(jnp.sum(g**2) for g in finite))
-            grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, jnp.nan), grads)
-            updates, opt_state = optimizer.update(grads, opt_state, params)
-            params = optax.projections.projection_box(optax.apply_updates(params, updates),
-                                                      lo, hi)
-            return params, opt_state, grad_norm, nonfinite
-
-        self.update = jax.jit(update)
+        self.value_and_grad = functools.partial(_value_and_grad, config)
+        self.update = functools.partial(_update, config)
 
     def init(self) -> tuple[dict, Any]:
         params = self.space.init_params()
@@ -211,6 +194,28 @@ class Tuner:
             _, _, gnorm, nonfinite = self.update(params, opt_state, grads)
             history.append(self._row(cfg.steps, params, loss, costs, gnorm, nonfinite))
         return TuneResult(params, self.space.controller_of(params), history, cfg, opt_state)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _value_and_grad(config: TuneConfig, params, cases):
+    """((objective, CaseCosts), d objective / d log-gains); compiled once per config (a frozen,
+    hashable dataclass) and case-batch shape, shared by every `Tuner` with that config."""
+    space = config.space()
+    return jax.value_and_grad(objective, has_aux=True)(params, space, cases, config.objective)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _update(config: TuneConfig, params, opt_state, grads):
+    """One optimiser step: count non-finite gradient entries (logged by the caller), turn them
+    into NaN so `optax.zero_nans` zeroes them, clip, Adam/SGD, project onto the gain box."""
+    lo, hi = config.space().bounds()
+    leaves = jax.tree.leaves(grads)
+    nonfinite = sum(jnp.sum(~jnp.isfinite(g)) for g in leaves)
+    grad_norm = jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(g), g, 0.0) ** 2) for g in leaves))
+    grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, jnp.nan), grads)
+    updates, opt_state = make_optimizer(config).update(grads, opt_state, params)
+    params = optax.projections.projection_box(optax.apply_updates(params, updates), lo, hi)
+    return params, opt_state, grad_norm, nonfinite
 
 
 def tune(config: TuneConfig, out: str | Path | None = None, resume: bool = False,
