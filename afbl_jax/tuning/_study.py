@@ -54,6 +54,8 @@ def evaluate_heldout(controllers: dict[str, AbstractController], cases,
             entry[key]["mean"] = float(np.mean(v))
         entry["effort_mean"] = float(np.mean(c.effort[ok])) if ok.any() else float("nan")
         entry["saturation_mean"] = float(np.mean(c.saturation))
+        entry["saturation_max"] = float(np.max(c.saturation))
+        entry["saturated_fraction"] = float(np.mean(c.saturation > 0))
         out[name] = entry
     return out
 
@@ -82,13 +84,17 @@ def format_report(heldout: dict, canonical: dict, omega_max: float, heldout_seed
     lines = [f"Held-out evaluation: {next(iter(heldout.values()))['n_cases']} fresh cases "
              f"(seed {heldout_seed}; training seed {config.seed}), rotor limit omega_max = "
              f"{omega_max:.1f} rad/s",
-             f"ISE = ISE_att + {w:g} ISE_alt over ok runs; effort = int |u - u_hover|^2 dt",
+             f"ISE = ISE_att + {w:g} ISE_alt over ok runs; effort = mean int |u - u_hover|^2 dt; "
+             "sat = saturation integral [s] (mean, max, share of cases > 0); objective = mean J",
              f"{'gains':<8}{'ISE p50':>11}{'ISE p90':>11}{'ISE p99':>11}{'att p50':>11}"
-             f"{'alt p50':>11}{'effort':>10}{'failed':>8}"]
+             f"{'alt p50':>11}{'effort':>9}{'sat mean':>10}{'sat max':>9}{'sat>0':>7}"
+             f"{'objective':>11}{'failed':>8}"]
     for name, e in heldout.items():
         lines.append(f"{name:<8}{e['ise']['p50']:>11.4e}{e['ise']['p90']:>11.4e}"
                      f"{e['ise']['p99']:>11.4e}{e['ise_attitude']['p50']:>11.4e}"
-                     f"{e['ise_altitude']['p50']:>11.4e}{e['effort_mean']:>10.2f}"
+                     f"{e['ise_altitude']['p50']:>11.4e}{e['effort_mean']:>9.2f}"
+                     f"{e['saturation_mean']:>10.2e}{e['saturation_max']:>9.2e}"
+                     f"{100 * e['saturated_fraction']:>6.0f}%{e['loss_mean']:>11.4e}"
                      f"{100 * e['failure_rate']:>7.1f}%")
     lines += ["", "Canonical scenarios (rtol 1e-8, same rotor limit): ISE [rad^2 s, m^2 s], "
               "effort, peak rotor speed [rad/s]",
