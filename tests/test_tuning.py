@@ -68,8 +68,11 @@ def test_gradient_matches_central_differences_afbl(tuner):
 
 @pytest.mark.slow
 def test_gradient_matches_central_differences_fbl():
-    config = TuneConfig(controller="fbl", objective=NOMINAL, steps=4)
-    _fd_check(config, canonical_cases(nominal_vehicle(2.5)))
+    # without the rotor limit: at these gains FBL saturates the rotors in the uncertain
+    # scenarios, and the clipped thrust is a kink in the dynamics where central differences
+    # straddling it do not converge to the (one-sided) derivative (measured: 1 % off on I_psi)
+    config = TuneConfig(controller="fbl", objective=NOMINAL, steps=4, thrust_to_weight=None)
+    _fd_check(config, canonical_cases(nominal_vehicle(None)))
 
 
 def test_short_run_lowers_loss_and_keeps_gains_positive_and_boxed(tuner, tmp_path):
