@@ -52,6 +52,8 @@ from .controllers import make_controller as make_controller
 __version__ = "0.1.0"
 
 # unmodeled dynamics (issue 6)
+# gain tuning (issue 4)
+from . import tuning as tuning
 from ._unmodeled import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT  # noqa: E402
 from ._unmodeled import PLANT_MODELS as PLANT_MODELS  # noqa: E402
 from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics  # noqa: E402
@@ -62,3 +64,6 @@ from ._unmodeled import full_plant_derivative as full_plant_derivative  # noqa: 
 from ._unmodeled import measure as measure  # noqa: E402
 from ._unmodeled import measurement_noise as measurement_noise  # noqa: E402
 from ._unmodeled import stack_unmodeled as stack_unmodeled  # noqa: E402
+from .tuning import TuneConfig as TuneConfig
+from .tuning import run_tuning as run_tuning
+from .tuning import tune as tune

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ._unmodeled_cli import add_unmodeled_arguments, add_unmodeled_subcommand, unmodeled_from_args
+from .tuning._study import add_tune_parser
 
 
 def _enable_x64() -> None:
@@ -86,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_montecarlo(sub)
     add_unmodeled_subcommand(sub)
+    add_tune_parser(sub)
     return parser
 
 
