@@ -4,6 +4,7 @@ Source: Eltayeb, Rahmat, Basri, "Adaptive Feedback Linearization Controller for 
 of Quadrotor UAV", IJIE 12(4), 2020; deviations in docs/paper_notes.md.
 """
 
+from . import tuning as tuning
 from ._disturbances import PulseDisturbance as PulseDisturbance
 from ._disturbances import no_disturbance as no_disturbance
 from ._mixer import actuate as actuate
@@ -40,6 +41,16 @@ from ._simulate import SimulationResult as SimulationResult
 from ._simulate import closed_loop_vector_field as closed_loop_vector_field
 from ._simulate import simulate as simulate
 from ._simulate import status_message as status_message
+from ._unmodeled import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT
+from ._unmodeled import PLANT_MODELS as PLANT_MODELS
+from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics
+from ._unmodeled import UnmodeledState as UnmodeledState
+from ._unmodeled import body_rates_from_euler_rates as body_rates_from_euler_rates
+from ._unmodeled import euler_rates_from_body_rates as euler_rates_from_body_rates
+from ._unmodeled import full_plant_derivative as full_plant_derivative
+from ._unmodeled import measure as measure
+from ._unmodeled import measurement_noise as measurement_noise
+from ._unmodeled import stack_unmodeled as stack_unmodeled
 from ._wind import Wind as Wind
 from ._wind import no_wind as no_wind
 from .controllers import AFBL as AFBL
@@ -48,22 +59,8 @@ from .controllers import FBLPID as FBLPID
 from .controllers import AbstractController as AbstractController
 from .controllers import AFBLPaper as AFBLPaper
 from .controllers import make_controller as make_controller
-
-__version__ = "0.1.0"
-
-# unmodeled dynamics (issue 6)
-# gain tuning (issue 4)
-from . import tuning as tuning
-from ._unmodeled import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT  # noqa: E402
-from ._unmodeled import PLANT_MODELS as PLANT_MODELS  # noqa: E402
-from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics  # noqa: E402
-from ._unmodeled import UnmodeledState as UnmodeledState  # noqa: E402
-from ._unmodeled import body_rates_from_euler_rates as body_rates_from_euler_rates  # noqa: E402
-from ._unmodeled import euler_rates_from_body_rates as euler_rates_from_body_rates  # noqa: E402
-from ._unmodeled import full_plant_derivative as full_plant_derivative  # noqa: E402
-from ._unmodeled import measure as measure  # noqa: E402
-from ._unmodeled import measurement_noise as measurement_noise  # noqa: E402
-from ._unmodeled import stack_unmodeled as stack_unmodeled  # noqa: E402
 from .tuning import TuneConfig as TuneConfig
 from .tuning import run_tuning as run_tuning
 from .tuning import tune as tune
+
+__version__ = "0.1.0"
