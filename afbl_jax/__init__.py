@@ -48,3 +48,9 @@ from .controllers import AFBLPaper as AFBLPaper
 from .controllers import make_controller as make_controller
 
 __version__ = "0.1.0"
+
+# batched solving (issue 5)
+from ._batch import STRATEGIES as STRATEGIES
+from ._batch import BatchMetrics as BatchMetrics
+from ._batch import ensemble_rms_norm as ensemble_rms_norm
+from ._batch import simulate_batch as simulate_batch

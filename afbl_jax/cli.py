@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_reproduce(sub)
+    from ._bench import add_bench_parser
+
+    add_bench_parser(sub)
     return parser
 
 
