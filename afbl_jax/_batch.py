@@ -28,6 +28,10 @@ Ensemble details:
   use a looser rtol, float32 resolves ~1e-7 relative; the accuracy of float32 is measured in
   `afbl bench`).
 
+``chunk_size`` splits a batch into consecutive chunks solved one after the other inside the same
+compiled call (``jax.lax.map``): smaller working sets stay in cache, and each ensemble chunk has
+its own step sequence.
+
 Both strategies are jitted once per (strategy, solver, tolerances, dtype, batch shapes): chunks
 of the same size reuse the compiled program (`trace_count` counts traces, for tests).
 """
@@ -242,11 +246,36 @@ def _vmap(controller, scenarios, vehicles, models, limits, axes, solver, rtol, a
 
 @eqx.filter_jit
 def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, solver, rtol,
-         atol, dtype, max_steps) -> BatchMetrics:
+         atol, dtype, max_steps, chunk_size) -> BatchMetrics:
     _TRACES["count"] += 1
     impl = _ensemble if strategy == "ensemble" else _vmap
-    return impl(controller, scenarios, vehicles, models, limits, dict(axes_items), solver, rtol,
-                atol, np.dtype(dtype), max_steps)
+    axes = dict(axes_items)
+    n = scenarios.t0.shape[0]
+    if chunk_size is None or chunk_size >= n:
+        return impl(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol,
+                    np.dtype(dtype), max_steps)
+    # chunks run one after the other inside this one compiled program (lax.map); the last
+    # chunk is padded with copies of case 0 and the padding is dropped
+    n_chunks = -(-n // chunk_size)
+    pad = n_chunks * chunk_size - n
+
+    def split(x):
+        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]) if pad else x
+        return x.reshape(n_chunks, chunk_size, *x.shape[1:])
+
+    batched = {"scenarios": scenarios, "controller": controller, "vehicles": vehicles,
+               "models": models}
+    mapped = {k: jax.tree.map(split, v) for k, v in batched.items() if k == "scenarios"
+              or axes[k] == 0}
+    fixed = {k: v for k, v in batched.items() if k not in mapped}
+
+    def one_chunk(part):
+        b = {**fixed, **part}
+        return impl(b["controller"], b["scenarios"], b["vehicles"], b["models"], limits, axes,
+                    solver, rtol, atol, np.dtype(dtype), max_steps)
+
+    out = jax.lax.map(one_chunk, mapped)
+    return jax.tree.map(lambda x: x.reshape(n_chunks * chunk_size, *x.shape[2:])[:n], out)
 
 
 def simulate_batch(
@@ -262,6 +291,7 @@ def simulate_batch(
     dtype=None,
     max_steps: int = 16384,
     limits: DivergenceLimits | None = None,
+    chunk_size: int | None = None,
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -277,6 +307,10 @@ def simulate_batch(
             only the default float dtype.
         max_steps: step budget (for ``"ensemble"``: shared by the whole batch).
         limits: divergence limits (default `DivergenceLimits()`).
+        chunk_size: solve the batch as consecutive chunks of this many cases inside the one
+            compiled call (``jax.lax.map``); with ``"ensemble"`` each chunk has its own shared
+            step sequence. Smaller chunks keep the working set in cache (the benchmark's
+            ``ensemble_chunked`` rows). None (default): one chunk.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -289,6 +323,8 @@ def simulate_batch(
     check_positive("simulate_batch", "atol", atol)
     if int(max_steps) <= 0:
         raise ValueError(f"simulate_batch: max_steps must be > 0, got {max_steps}.")
+    if chunk_size is not None and int(chunk_size) <= 0:
+        raise ValueError(f"simulate_batch: chunk_size must be > 0 or None, got {chunk_size}.")
     default = jnp.result_type(float)
     dtype = np.dtype(default if dtype is None else dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
@@ -305,4 +341,4 @@ def simulate_batch(
                                  f"cases, got values from {v.min()} to {v.max()} [s].")
     return _run(controller, scenarios, vehicles, models, limits, tuple(sorted(axes.items())),
                 strategy, get_solver(solver), float(rtol), float(atol), dtype.name,
-                int(max_steps))
+                int(max_steps), None if chunk_size is None else int(chunk_size))

@@ -16,6 +16,9 @@ Strategies (rows of bench.json):
 - ``vmap``, ``ensemble``: `simulate_batch` strategies, float64.
 - ``ensemble_f32``: the ensemble in float32 at rtol 1e-5, atol 1e-6 (float32 cannot resolve
   1e-8 absolute / 1e-6 relative steps reliably; the measured error is in the row).
+- ``ensemble_chunked``, ``ensemble_f32_chunked``: the same, solved as consecutive chunks of
+  1024 cases inside one compiled call (``simulate_batch(chunk_size=1024)``): the per-step
+  working set then stays in cache (rows with N <= 1024 are the unchunked ensemble).
 
 Memory: ``peak_rss_delta_mb`` is the growth of the process's peak resident set size
 (``resource.getrusage`` max RSS, which includes compilation) during the row; it is 0 when the
@@ -44,11 +47,14 @@ from ._simulate import STATUS_OK, simulate
 from .controllers import AFBL
 
 DEFAULT_SIZES = (64, 1024, 4096, 16384)
+CHUNK = 1024
 BATCH_STRATEGIES = {
-    # name: (simulate_batch strategy, dtype, rtol, atol)
-    "vmap": ("vmap", "float64", 1e-6, 1e-8),
-    "ensemble": ("ensemble", "float64", 1e-6, 1e-8),
-    "ensemble_f32": ("ensemble", "float32", 1e-5, 1e-6),
+    # name: (simulate_batch strategy, dtype, rtol, atol, chunk_size)
+    "vmap": ("vmap", "float64", 1e-6, 1e-8, None),
+    "ensemble": ("ensemble", "float64", 1e-6, 1e-8, None),
+    "ensemble_f32": ("ensemble", "float32", 1e-5, 1e-6, None),
+    "ensemble_chunked": ("ensemble", "float64", 1e-6, 1e-8, CHUNK),
+    "ensemble_f32_chunked": ("ensemble", "float32", 1e-5, 1e-6, CHUNK),
 }
 LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
 ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES)
@@ -209,13 +215,14 @@ def reference_ise(scenarios: Scenario, chunk: int = 4096) -> np.ndarray:
 
 def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     """One row: run twice (compile + run, then run), time the second call."""
-    strategy, dtype, rtol, atol = BATCH_STRATEGIES[name]
+    strategy, dtype, rtol, atol, chunk = BATCH_STRATEGIES[name]
     n = scenarios.t0.shape[0]
     rss0 = _rss_mb()
 
     def call():
         return jax.block_until_ready(simulate_batch(AFBL(), scenarios, strategy=strategy,
-                                                    rtol=rtol, atol=atol, dtype=dtype))
+                                                    rtol=rtol, atol=atol, dtype=dtype,
+                                                    chunk_size=chunk))
 
     t = time.perf_counter()
     call()
@@ -227,7 +234,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     ok = np.asarray(m.status)[:k] == STATUS_OK
     return {
         "strategy": name, "N": n, "dtype": dtype, "rtol": rtol, "atol": atol,
-        "sims_per_s": n / run, "seconds": run,
+        "chunk_size": chunk, "sims_per_s": n / run, "seconds": run,
         "compile_s": max(first - run, 0.0),
         "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
         "max_rel_ise_error": _rel_error(_ise(m)[:k], ref[:k], ok), "error_cases": k,
@@ -316,6 +323,9 @@ def run_benchmark(
                                          ref[:loop_cases]))
     for n in sorted(int(s) for s in sizes):
         for name in BATCH_STRATEGIES:
+            chunk = BATCH_STRATEGIES[name][4]
+            if chunk is not None and n <= chunk:
+                continue  # identical to the unchunked row
             if name in strategies:
                 log(f"{name} N={n} ...")
                 rows.append(measure_batch(name, _index(scenarios, slice(0, n)), ref))
