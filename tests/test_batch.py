@@ -166,3 +166,12 @@ def test_bench_cli_smoke(tmp_path, capsys):
     assert "ensemble" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="unknown strategies"):
         main(["bench", "--out", str(out), "--strategies", "magic"])
+
+
+def test_chunked_ensemble_equals_unchunked(cases, tight_ensemble):
+    # 4 cases in chunks of 3: the last chunk is padded and the padding dropped
+    m = A.simulate_batch(A.AFBL(), cases[0], strategy="ensemble", chunk_size=3, **TIGHT)
+    assert m.ise_attitude.shape == (N,) and np.all(np.asarray(m.status) == 0)
+    np.testing.assert_allclose(_ise(m), _ise(tight_ensemble), rtol=1e-7)
+    with pytest.raises(ValueError, match="chunk_size"):
+        A.simulate_batch(A.AFBL(), cases[0], chunk_size=0)
