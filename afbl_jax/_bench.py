@@ -161,7 +161,11 @@ def _numpy_rhs(t, y, mass_factor, torque, force_z, gamma, k, lam):
 
 def scipy_loop(draws: np.ndarray, rtol: float = 1e-6, atol: float = 1e-8) -> np.ndarray:
     """(n, 2) ISE (attitude, altitude) of each case by `solve_ivp` RK45 with a NumPy RHS."""
-    from scipy.integrate import solve_ivp
+    try:
+        from scipy.integrate import solve_ivp
+    except ImportError:
+        raise ValueError("the scipy_rk45_loop baseline needs scipy (pip install scipy, or "
+                         "leave it out of --strategies).") from None
 
     ctrl = AFBL()
     gamma, k, lam = (np.asarray(getattr(ctrl, g)) for g in ("gamma", "k", "lam"))
