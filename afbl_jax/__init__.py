@@ -64,3 +64,9 @@ from .tuning import run_tuning as run_tuning
 from .tuning import tune as tune
 
 __version__ = "0.1.0"
+
+# batched solving (issue 5)
+from ._batch import STRATEGIES as STRATEGIES
+from ._batch import BatchMetrics as BatchMetrics
+from ._batch import ensemble_rms_norm as ensemble_rms_norm
+from ._batch import simulate_batch as simulate_batch

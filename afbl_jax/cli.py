@@ -88,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_montecarlo(sub)
     add_unmodeled_subcommand(sub)
     add_tune_parser(sub)
+    from ._bench import add_bench_parser
+
+    add_bench_parser(sub)
     return parser
 
 

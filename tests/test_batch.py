@@ -1,0 +1,177 @@
+"""Batched solving (`simulate_batch`): ensemble = vmap = per-case `simulate`, divergence
+isolation, no recompiles across chunks, float32 accuracy, and the `afbl bench` CLI.
+
+Shapes and tolerances are shared with the bench smoke test (N = 4, the bench reference settings)
+so that compiled programs are reused within the test session.
+"""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import afbl_jax as A
+from afbl_jax._batch import trace_count
+from afbl_jax._bench import REFERENCE, bench_cases
+from afbl_jax.cli import main
+
+N = 4
+TIGHT = {"solver": REFERENCE["solver"], "rtol": REFERENCE["rtol"], "atol": REFERENCE["atol"]}
+
+
+def _case(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def _ise(m):
+    return np.stack([np.asarray(m.ise_attitude, float), np.asarray(m.ise_altitude, float)], 1)
+
+
+@pytest.fixture(scope="module")
+def cases():
+    scenarios, draws = bench_cases(N, seed=1)
+    return scenarios, draws
+
+
+@pytest.fixture(scope="module")
+def tight_ensemble(cases):
+    return A.simulate_batch(A.AFBL(), cases[0], strategy="ensemble", **TIGHT)
+
+
+@pytest.fixture(scope="module")
+def diverging_batch(cases):
+    """Case 2 gets a 10 N m torque pulse (1000x): the attitude loop cannot hold it."""
+    scenarios = cases[0]
+    torque = np.array(scenarios.disturbance.torque)
+    torque[2] *= 1000.0
+    return eqx.tree_at(lambda s: s.disturbance.torque, scenarios, jnp.asarray(torque))
+
+
+def test_bench_cases_differ(cases):
+    scenarios, draws = cases
+    assert scenarios.payload_fraction.shape == (N,)
+    np.testing.assert_allclose(scenarios.payload_fraction, draws[:, 0])
+    assert np.all((draws[:, 0] >= 0) & (draws[:, 0] <= 0.5))
+    assert len(np.unique(draws[:, 1])) == N  # pulse amplitudes vary
+
+
+def test_ensemble_equals_vmap_equals_simulate(cases, tight_ensemble):
+    scenarios, _ = cases
+    ctrl = A.AFBL()
+    vm = A.simulate_batch(ctrl, scenarios, strategy="vmap", **TIGHT)
+    singles = [A.simulate(ctrl, _case(scenarios, i), n_save=0, **TIGHT) for i in range(N)]
+    single_ise = np.array([[float(r.ise_attitude), float(r.ise_altitude)] for r in singles])
+    ens = tight_ensemble
+    assert np.all(np.asarray(ens.status) == A._simulate.STATUS_OK)
+    assert np.all(np.asarray(vm.status) == 0)
+    np.testing.assert_allclose(_ise(ens), single_ise, rtol=1e-7)
+    np.testing.assert_allclose(_ise(vm), single_ise, rtol=1e-9)
+    np.testing.assert_allclose(ens.effort, [float(r.effort) for r in singles], rtol=1e-7)
+    # same per-case step control (counts differ by a few steps: batched arithmetic rounds
+    # differently)
+    np.testing.assert_allclose(vm.num_steps, [int(r.num_steps) for r in singles], rtol=0.02)
+    # the cases really differ (payload, pulses), so equality above is not trivial
+    assert np.ptp(single_ise[:, 1]) > 1e-3 * single_ise[:, 1].max()
+    # one shared step sequence, at least as fine as the finest single case
+    assert len(set(np.asarray(ens.num_steps).tolist())) == 1
+    np.testing.assert_allclose(ens.t_final, 20.0)
+
+
+def test_ensemble_norm_is_max_over_cases():
+    rng = np.random.default_rng(0)
+    tree = (rng.normal(size=(5, 3)), rng.normal(size=(5, 2, 2)))
+    per_case = np.sqrt((np.sum(tree[0] ** 2, 1) + np.sum(tree[1] ** 2, (1, 2))) / 7)
+    np.testing.assert_allclose(A.ensemble_rms_norm(jax.tree.map(jnp.asarray, tree)),
+                               per_case.max(), rtol=1e-12)
+
+
+def test_ensemble_meets_tolerance_and_isolates_divergence(cases, diverging_batch,
+                                                          tight_ensemble):
+    ctrl, scenarios = A.AFBL(), cases[0]
+    before = trace_count()
+    clean = A.simulate_batch(ctrl, scenarios, strategy="ensemble")
+    after_first = trace_count()
+    bad = A.simulate_batch(ctrl, diverging_batch, strategy="ensemble")
+    # same shapes, different data: no retrace / recompile for the second chunk
+    assert trace_count() == after_first and after_first - before <= 1
+    status = np.asarray(bad.status)
+    assert status[2] == A._simulate.STATUS_DIVERGED
+    assert np.all(np.delete(status, 2) == 0) and np.all(np.asarray(clean.status) == 0)
+    # at rtol 1e-6 every case is within ~1e-6 of the tight reference ...
+    ref = _ise(tight_ensemble)
+    assert np.max(np.abs(_ise(clean) - ref) / ref) < 2e-5
+    # ... and the diverged case did not stall or corrupt the others
+    keep = [0, 1, 3]
+    assert np.max(np.abs(_ise(bad)[keep] - ref[keep]) / ref[keep]) < 2e-5
+    assert int(bad.num_steps[0]) < 4 * int(clean.num_steps[0])
+    # the diverged case stopped where a single simulate stops it (10 N m pulse from t = 10 s)
+    single = A.simulate(ctrl, _case(diverging_batch, 2), n_save=0)
+    assert int(single.status) == A._simulate.STATUS_DIVERGED
+    assert 10.0 < float(bad.t_final[2]) < 11.0
+    np.testing.assert_allclose(float(bad.t_final[2]), float(single.t_final), atol=0.05)
+    np.testing.assert_allclose(float(bad.ise_attitude[2]), float(single.ise_attitude), rtol=0.05)
+
+
+def test_float32_ensemble_within_bound(cases, tight_ensemble):
+    m = A.simulate_batch(A.AFBL(), cases[0], strategy="ensemble", dtype="float32", rtol=1e-5,
+                         atol=1e-6)
+    assert m.ise_attitude.dtype == jnp.float32
+    assert np.all(np.asarray(m.status) == 0)
+    err = np.max(np.abs(_ise(m) - _ise(tight_ensemble)) / _ise(tight_ensemble))
+    assert err < 1e-3  # the bound the benchmark reports for ensemble_f32 (measured ~5e-5)
+
+
+def test_simulate_batch_rejects_bad_input(cases):
+    scenarios, ctrl = cases[0], A.AFBL()
+    with pytest.raises(ValueError, match="unknown strategy"):
+        A.simulate_batch(ctrl, scenarios, strategy="pmap")
+    with pytest.raises(ValueError, match="default float dtype"):
+        A.simulate_batch(ctrl, scenarios, strategy="vmap", dtype="float32")
+    with pytest.raises(ValueError, match="must be batched"):
+        A.simulate_batch(ctrl, _case(scenarios, 0))
+    vehicles = jax.tree.map(lambda x: jnp.stack([x] * (N + 1)), A.QuadrotorParams())
+    with pytest.raises(ValueError, match="leading axis 4"):
+        A.simulate_batch(ctrl, scenarios, vehicles)
+    t1 = eqx.tree_at(lambda s: s.t1, scenarios, jnp.array([20.0, 20.0, 20.0, 19.0]))
+    with pytest.raises(ValueError, match="one t1"):
+        A.simulate_batch(ctrl, t1, strategy="ensemble")
+    with pytest.raises(ValueError, match="rtol"):
+        A.simulate_batch(ctrl, scenarios, rtol=0.0)
+
+
+def test_bench_cli_smoke(tmp_path, capsys):
+    out = tmp_path / "bench"
+    rc = main(["bench", "--out", str(out), "--sizes", str(N), "--strategies",
+               "scipy_rk45_loop,ensemble", "--scipy-cases", "1", "--loop-cases", "1",
+               "--ref-cases", str(N)])
+    assert rc == 0
+    rows = json.loads((out / "bench.json").read_text())
+    assert isinstance(rows, list) and [r["strategy"] for r in rows] == ["scipy_rk45_loop",
+                                                                       "ensemble"]
+    keys = {"strategy", "N", "dtype", "sims_per_s", "ratio_to_scipy", "compile_s",
+            "peak_rss_delta_mb", "max_rel_ise_error", "meta"}
+    for r in rows:
+        assert keys <= set(r) and r["sims_per_s"] > 0
+        assert r["meta"]["config"]["seed"] == 0 and r["meta"]["versions"]["diffrax"]
+    scipy_row, ens = rows
+    assert scipy_row["ratio_to_scipy"] == 1.0
+    # both solve the same problem: the scipy loop agrees with the reference too
+    assert scipy_row["max_rel_ise_error"] < 1e-3 and ens["max_rel_ise_error"] < 1e-4
+    assert ens["N"] == N and ens["dtype"] == "float64"
+    assert rows[0]["meta"]["config"]["reference_check_max_rel_error"] < 1e-7
+    assert (out / "bench.png").stat().st_size > 5_000
+    assert "ensemble" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="unknown strategies"):
+        main(["bench", "--out", str(out), "--strategies", "magic"])
+
+
+def test_chunked_ensemble_equals_unchunked(cases, tight_ensemble):
+    # 4 cases in chunks of 3: the last chunk is padded and the padding dropped
+    m = A.simulate_batch(A.AFBL(), cases[0], strategy="ensemble", chunk_size=3, **TIGHT)
+    assert m.ise_attitude.shape == (N,) and np.all(np.asarray(m.status) == 0)
+    np.testing.assert_allclose(_ise(m), _ise(tight_ensemble), rtol=1e-7)
+    with pytest.raises(ValueError, match="chunk_size"):
+        A.simulate_batch(A.AFBL(), cases[0], chunk_size=0)
