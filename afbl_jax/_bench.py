@@ -86,7 +86,7 @@ def bench_cases(n: int, seed: int = 0) -> tuple[Scenario, np.ndarray]:
     scenarios = Scenario(
         reference=reference, disturbance=disturbance, payload_fraction=draws[:, 0],
         payload_time=tile(base.payload_time), initial_state=tile(base.initial_state),
-        t0=tile(base.t0), t1=tile(base.t1),
+        t0=tile(base.t0), t1=tile(base.t1), wind=jax.tree.map(tile, base.wind),
     )
     return scenarios, draws
 
