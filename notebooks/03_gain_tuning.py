@@ -53,8 +53,9 @@ np.set_printoptions(precision=4, linewidth=100)
 # ## 1. Cases and the per-case cost
 #
 # The robust objective averages (or takes the CVaR of) the per-case cost over a fixed batch of
-# sampled cases: payload 0–50 %, inertia / thrust / drag coefficients ±10 %, the paper's
-# disturbance pulses with random amplitudes, step or sine attitude references. Every case is
+# cases drawn by the Monte-Carlo sampler (`afbl_jax.montecarlo`, default distribution):
+# payload 0–50 %, inertia / thrust / drag coefficients ±10 %, disturbance pulses, 1-cosine
+# gusts, Dryden turbulence, initial offsets, step or sine attitude references. Every case is
 # reproducible from `(seed, index)`.
 
 # %%
