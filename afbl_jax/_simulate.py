@@ -320,9 +320,16 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
             lambda a: jnp.zeros((0, *a.shape), a.dtype),
             _signals_and_derivative(t0, y0, args)[0],
         )
-    result = sol.result
     finite = jnp.all(jnp.isfinite(final.cost)) & jnp.all(jnp.isfinite(final.plant))
-    status = jnp.where(
+    steps = tuple(jnp.asarray(sol.stats[k]) for k in
+                  ("num_steps", "num_accepted_steps", "num_rejected_steps"))
+    return make_result(save_ts, traj.plant, traj.controller, signals, final, t_final,
+                       solver_status(sol.result, finite), steps)
+
+
+def solver_status(result, finite) -> Int[Array, ""]:
+    """Our status code from a diffrax result and whether the final state is finite."""
+    return jnp.where(
         result == diffrax.RESULTS.successful,
         jnp.where(finite, STATUS_OK, STATUS_SOLVER_FAILED),
         jnp.where(
@@ -331,11 +338,17 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
             jnp.where(result == diffrax.RESULTS.max_steps_reached, STATUS_MAX_STEPS,
                       STATUS_SOLVER_FAILED),
         ),
-    )
+    ).astype(jnp.int32)
+
+
+def make_result(ts, plant, controller_state, signals: Signals, final: ClosedLoopState, t_final,
+                status, steps) -> SimulationResult:
+    """Assemble a `SimulationResult` (shared by the continuous and the unmodeled loops);
+    ``steps`` = (num_steps, num_accepted_steps, num_rejected_steps)."""
     return SimulationResult(
-        ts=save_ts,
-        plant=traj.plant,
-        controller_state=traj.controller,
+        ts=ts,
+        plant=plant,
+        controller_state=controller_state,
         reference=signals.reference,
         error=signals.error,
         u_command=signals.u_command,
@@ -349,8 +362,8 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         ise_altitude=final.cost[1],
         effort=final.cost[2],
         saturation=final.cost[3],
-        status=status.astype(jnp.int32),
-        num_steps=jnp.asarray(sol.stats["num_steps"]),
-        num_accepted_steps=jnp.asarray(sol.stats["num_accepted_steps"]),
-        num_rejected_steps=jnp.asarray(sol.stats["num_rejected_steps"]),
+        status=status,
+        num_steps=steps[0],
+        num_accepted_steps=steps[1],
+        num_rejected_steps=steps[2],
     )

@@ -417,21 +417,6 @@ def _diverged(t, y: UnmodeledState, args: _UArgs, **kwargs):
     return (att > args.limits.attitude) | (alt_err > args.limits.altitude_error) | ~finite
 
 
-def _status(result, finite):
-    from ._simulate import STATUS_DIVERGED, STATUS_MAX_STEPS, STATUS_OK, STATUS_SOLVER_FAILED
-
-    return jnp.where(
-        result == diffrax.RESULTS.successful,
-        jnp.where(finite, STATUS_OK, STATUS_SOLVER_FAILED),
-        jnp.where(
-            result == diffrax.RESULTS.event_occurred,
-            STATUS_DIVERGED,
-            jnp.where(result == diffrax.RESULTS.max_steps_reached, STATUS_MAX_STEPS,
-                      STATUS_SOLVER_FAILED),
-        ),
-    ).astype(jnp.int32)
-
-
 def _initial_state(controller, scenario, settings, args, dtype):
     plant0 = from_paper_layout(settings.plant, scenario.initial_state.astype(dtype))
     ctrl0 = controller.init_state().astype(dtype)
@@ -443,32 +428,17 @@ def _initial_state(controller, scenario, settings, args, dtype):
     return UnmodeledState(plant0, rotors0, ctrl0, jnp.zeros(len(COST_LAYOUT), dtype)), meas0
 
 
+def _solver_status(result, finite):
+    from ._simulate import solver_status  # (_simulate imports this module)
+
+    return solver_status(result, finite)
+
+
 def _result(ts, traj, signals, final: UnmodeledState, t_final, status, steps):
-    from ._simulate import ClosedLoopState, SimulationResult
+    from ._simulate import ClosedLoopState, make_result
 
     closed = ClosedLoopState(final.plant, final.controller, final.cost)
-    return SimulationResult(
-        ts=ts,
-        plant=traj.plant,
-        controller_state=traj.controller,
-        reference=signals.reference,
-        error=signals.error,
-        u_command=signals.u_command,
-        u_applied=signals.u_applied,
-        rotor_speeds=signals.rotor_speeds,
-        disturbance_force=signals.force,
-        disturbance_torque=signals.torque,
-        final=closed,
-        t_final=t_final,
-        ise_attitude=final.cost[0],
-        ise_altitude=final.cost[1],
-        effort=final.cost[2],
-        saturation=final.cost[3],
-        status=status,
-        num_steps=steps[0],
-        num_accepted_steps=steps[1],
-        num_rejected_steps=steps[2],
-    )
+    return make_result(ts, traj.plant, traj.controller, signals, closed, t_final, status, steps)
 
 
 @eqx.filter_jit
@@ -514,8 +484,8 @@ def _simulate_continuous(controller, scenario, vehicle, model, limits, settings,
     finite = jnp.all(jnp.isfinite(final.cost)) & jnp.all(jnp.isfinite(final.plant))
     steps = tuple(jnp.asarray(sol.stats[k]) for k in
                   ("num_steps", "num_accepted_steps", "num_rejected_steps"))
-    return _result(save_ts, traj, signals, final, sol.ts[0][-1], _status(sol.result, finite),
-                   steps)
+    status = _solver_status(sol.result, finite)
+    return _result(save_ts, traj, signals, final, sol.ts[0][-1], status, steps)
 
 
 def _simulate_digital(controller, scenario, vehicle, model, limits, settings, solver, rtol, atol,
@@ -556,7 +526,7 @@ def _simulate_digital(controller, scenario, vehicle, model, limits, settings, so
         y_end = jax.tree.map(lambda a: a[-1], sol.ys)
         y_end = eqx.tree_at(lambda s: s.controller, y_end, y.controller + h * dctrl)
         finite = jnp.all(jnp.isfinite(y_end.cost)) & jnp.all(jnp.isfinite(y_end.plant))
-        new_status = jnp.where(alive, _status(sol.result, finite), status)
+        new_status = jnp.where(alive, _solver_status(sol.result, finite), status)
         y_new = jax.tree.map(lambda a, b: jnp.where(alive, a, b), y_end, y)
         t_final = jnp.where(alive, sol.ts[-1], t_final)
         stats = jnp.stack([jnp.asarray(sol.stats[n]) for n in
