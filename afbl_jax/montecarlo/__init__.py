@@ -19,6 +19,7 @@ from ._runner import run_montecarlo as run_montecarlo
 from ._runner import shard_chunk as shard_chunk
 from ._runner import table_columns as table_columns
 from ._sampler import INPUT_COLUMNS as INPUT_COLUMNS
+from ._sampler import UNMODELED_COLUMNS as UNMODELED_COLUMNS
 from ._sampler import CaseBatch as CaseBatch
 from ._sampler import sample_cases as sample_cases
 from ._study import run_study as run_study

@@ -62,6 +62,17 @@ DEFAULT_DISTRIBUTION: dict = {
     },
     "reference": {"profile_probabilities": {"step": 0.5, "sine": 0.5}},
     "time": {"t1": 20.0},  # [s], runs start at t0 = 0
+    "unmodeled": {  # afbl_jax.UnmodeledDynamics per case; off = the paper's closed loop
+        "enabled": False,
+        "plant": "paper",  # "paper" (eq. 15) or "full" (rigid body), shared by all cases
+        "motor_tau": [0.0, 0.0],  # rotor time constant tau_m [s]; 0 = instantaneous
+        "control_rate": [0.0, 0.0],  # controller rate f_c [Hz]; [0, 0] = continuous controller
+        "delay_samples": [0, 0],  # measurement delay [whole samples], integers, inclusive
+        "noise_angle": [0.0, 0.0],  # std of measured phi, theta, psi [rad]
+        "noise_rate": [0.0, 0.0],  # std of measured angle rates [rad/s]
+        "noise_altitude": [0.0, 0.0],  # std of measured z [m]
+        "noise_vertical_speed": [0.0, 0.0],  # std of measured zd [m/s]
+    },
 }
 
 # key -> (kind, lower bound or None, bound inclusive?)
@@ -84,12 +95,22 @@ _RANGE_RULES = {
     ("gust", "start"): (0.0, True),
     ("initial", "attitude"): (-1.2, False),
     ("initial", "rate"): (None, True),
+    ("unmodeled", "motor_tau"): (0.0, True),
+    ("unmodeled", "control_rate"): (0.0, True),
+    ("unmodeled", "delay_samples"): (0.0, True),
+    ("unmodeled", "noise_angle"): (0.0, True),
+    ("unmodeled", "noise_rate"): (0.0, True),
+    ("unmodeled", "noise_altitude"): (0.0, True),
+    ("unmodeled", "noise_vertical_speed"): (0.0, True),
 }
 _PROB_RULES = {
     ("turbulence", "intensity_probabilities"): TURBULENCE_INTENSITIES,
     ("reference", "profile_probabilities"): ("step", "sine"),
 }
-_BOOL_KEYS = {("pulses", "enabled"), ("gust", "enabled"), ("turbulence", "enabled")}
+_BOOL_KEYS = {("pulses", "enabled"), ("gust", "enabled"), ("turbulence", "enabled"),
+              ("unmodeled", "enabled")}
+_INT_RANGE_KEYS = {("unmodeled", "delay_samples")}
+_CHOICE_KEYS = {("unmodeled", "plant"): ("paper", "full")}
 _POSITIVE_KEYS = {("turbulence", "airspeed"), ("turbulence", "altitude"),
                   ("turbulence", "omega_min"), ("turbulence", "omega_max"), ("time", "t1")}
 _INT_KEYS = {("turbulence", "n_frequencies")}
@@ -127,6 +148,13 @@ def _validate(spec: dict, source: str) -> None:
                 if bound is not None and (lo < bound or (lo == bound and not inclusive)):
                     rel = ">=" if inclusive else ">"
                     raise ValueError(f"{where} = {list(value)}: values must be {rel} {bound}.")
+                if k in _INT_RANGE_KEYS and not all(
+                        isinstance(v, int) or float(v).is_integer() for v in value):
+                    raise ValueError(f"{where} = {list(value)}: values must be whole numbers.")
+            elif k in _CHOICE_KEYS:
+                if value not in _CHOICE_KEYS[k]:
+                    raise ValueError(f"{where} must be one of "
+                                     f"{', '.join(_CHOICE_KEYS[k])}, got {value!r}.")
             elif k in _PROB_RULES:
                 names = _PROB_RULES[k]
                 if not isinstance(value, dict) or set(value) - set(names):
@@ -170,6 +198,18 @@ class Distribution:
             if self.spec[section][key][1] >= t1:
                 raise ValueError(f"{self.source}: {section}.{key} must lie before time.t1 = "
                                  f"{t1} s, got {self.spec[section][key]}.")
+        unm = self.spec["unmodeled"]
+        rate = unm["control_rate"]
+        if rate[0] == 0 and rate[1] > 0:
+            raise ValueError(f"{self.source}: unmodeled.control_rate = {rate}: either [0, 0] "
+                             "(continuous controller) or a range of rates > 0 [Hz].")
+        if rate[1] == 0:
+            digital_only = [n for n in ("delay_samples", "noise_angle", "noise_rate",
+                                        "noise_altitude", "noise_vertical_speed")
+                            if unm[n][1] > 0]
+            if digital_only:
+                raise ValueError(f"{self.source}: unmodeled.{', '.join(digital_only)} need a "
+                                 "digital controller (unmodeled.control_rate > 0 [Hz]).")
 
     @classmethod
     def from_dict(cls, overrides: dict, source: str = "overrides") -> Distribution:

@@ -263,7 +263,8 @@ def replay_worst(cols, controllers: dict, distribution, seed: int, k: int = 5,
         scenario, vehicle, model = batch.case(0)
         out[case] = {name: simulate(ctrl, scenario, vehicle, model, solver=settings.solver,
                                     rtol=settings.rtol, atol=settings.atol, n_save=801,
-                                    max_steps=settings.max_steps)
+                                    max_steps=settings.max_steps,
+                                    unmodeled=batch.unmodeled_case(0))
                      for name, ctrl in controllers.items()}
     return out
 

@@ -43,7 +43,7 @@ from .._mixer import rotor_speeds_sq_from_inputs
 from .._simulate import STATUS_NAMES, DivergenceLimits, simulate
 from ..controllers import AbstractController
 from ._distribution import Distribution
-from ._sampler import INPUT_COLUMNS, CaseBatch, sample_cases
+from ._sampler import CaseBatch, sample_cases
 
 METRIC_NAMES: tuple[str, ...] = (
     "ise_attitude", "ise_altitude", "peak_attitude_error", "peak_altitude_error",
@@ -73,11 +73,12 @@ class SolverSettings:
 
 
 def case_metrics(controller: AbstractController, scenario, vehicle, model,
-                 settings: SolverSettings) -> dict[str, jax.Array]:
-    """Metrics of one case (unbatched); see the module docstring."""
+                 settings: SolverSettings, unmodeled=None) -> dict[str, jax.Array]:
+    """Metrics of one case (unbatched); see the module docstring. ``unmodeled``: the case's
+    `afbl_jax.UnmodeledDynamics` (None = the paper's closed loop)."""
     r = simulate(controller, scenario, vehicle, model, solver=settings.solver,
                  rtol=settings.rtol, atol=settings.atol, n_save=settings.n_save,
-                 max_steps=settings.max_steps, limits=DivergenceLimits())
+                 max_steps=settings.max_steps, limits=DivergenceLimits(), unmodeled=unmodeled)
     valid = r.ts <= r.t_final
 
     def peak(x):
@@ -102,8 +103,11 @@ def case_metrics(controller: AbstractController, scenario, vehicle, model,
 @eqx.filter_jit
 def _vmap_chunk(controller, chunk: CaseBatch, settings: SolverSettings):
     model_axis = 0 if chunk.model_batched else None
-    return jax.vmap(case_metrics, in_axes=(None, 0, 0, model_axis, None))(
-        controller, chunk.scenario, chunk.vehicle, chunk.model, settings)
+    if chunk.unmodeled is None:
+        return jax.vmap(case_metrics, in_axes=(None, 0, 0, model_axis, None))(
+            controller, chunk.scenario, chunk.vehicle, chunk.model, settings)
+    return jax.vmap(case_metrics, in_axes=(None, 0, 0, model_axis, None, 0))(
+        controller, chunk.scenario, chunk.vehicle, chunk.model, settings, chunk.unmodeled)
 
 
 def vmap_strategy(controller: AbstractController, chunk: CaseBatch,
@@ -115,11 +119,18 @@ def vmap_strategy(controller: AbstractController, chunk: CaseBatch,
 Strategy = Callable[[AbstractController, CaseBatch, SolverSettings], dict]
 STRATEGIES: dict[str, Strategy] = {"vmap": vmap_strategy}
 """Chunk strategies by name: ``(controller, chunk, settings) -> metrics dict``."""
+UNMODELED_STRATEGIES: set[str] = {"vmap"}
+"""Strategies that simulate ``chunk.unmodeled`` (others reject chunks that carry it)."""
 
 
-def register_strategy(name: str, fn: Strategy) -> None:
-    """Make ``fn`` available as ``strategy=name`` (and ``--strategy name``)."""
+def register_strategy(name: str, fn: Strategy, *, unmodeled: bool = False) -> None:
+    """Make ``fn`` available as ``strategy=name`` (and ``--strategy name``); ``unmodeled``:
+    ``fn`` honours ``chunk.unmodeled`` (unmodeled-dynamics settings per case)."""
     STRATEGIES[name] = fn
+    if unmodeled:
+        UNMODELED_STRATEGIES.add(name)
+    else:
+        UNMODELED_STRATEGIES.discard(name)
 
 
 def shard_chunk(chunk: CaseBatch, devices=None) -> CaseBatch:
@@ -153,6 +164,10 @@ def run_chunk(controller: AbstractController, chunk: CaseBatch, *, strategy: str
     except KeyError:
         raise ValueError(f"unknown strategy {strategy!r}; allowed: "
                          f"{', '.join(STRATEGIES)}.") from None
+    if chunk.unmodeled is not None and strategy not in UNMODELED_STRATEGIES:
+        raise ValueError(f"strategy {strategy!r} does not simulate unmodeled dynamics; with "
+                         "the distribution's [unmodeled] section enabled use one of "
+                         f"{', '.join(sorted(UNMODELED_STRATEGIES))}.")
     if shard:
         chunk = shard_chunk(chunk)
     out = fn(controller, chunk, settings)
@@ -175,14 +190,15 @@ def _chunk_table(chunk: CaseBatch, n_valid: int, per_controller: dict[str, dict]
     def interleave(arrays):
         return np.stack([a[:n_valid] for a in arrays], axis=1).reshape(rows)
 
-    for name in INPUT_COLUMNS:
+    for name in chunk.input_columns:
         x = np.asarray(chunk.inputs[name])
         cols[name] = interleave([x] * len(names))
     for m in METRIC_NAMES:
         cols[m] = interleave([per_controller[c][m] for c in names])
     cols["status"] = status_label(cols["status"])
-    for k in ("solver_steps", "turbulence_level", "profile"):
-        cols[k] = cols[k].astype(np.int64)
+    for k in ("solver_steps", "turbulence_level", "profile", "delay_samples"):
+        if k in cols:
+            cols[k] = cols[k].astype(np.int64)
     return pa.table(cols)
 
 

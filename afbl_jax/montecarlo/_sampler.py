@@ -7,6 +7,7 @@ many cases are drawn with it or on how they are chunked.
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -17,6 +18,7 @@ from .._disturbances import PulseDisturbance
 from .._params import QuadrotorParams
 from .._scenarios import Scenario, paper_reference
 from .._typing import Array
+from .._unmodeled import UnmodeledDynamics
 from .._wind import TURBULENCE_INTENSITIES, Wind, dryden_amplitudes, turbulence_grid
 from ._distribution import Distribution
 
@@ -37,6 +39,15 @@ INPUT_COLUMNS: tuple[str, ...] = (
 `afbl_jax._wind.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine;
 ``gust_speed`` = |gust amplitude vector| [m/s]; ``turbulence_sigma_w`` the vertical RMS [m/s]."""
 PROFILE_NAMES = ("step", "sine")
+UNMODELED_COLUMNS: tuple[str, ...] = (
+    "motor_tau", "control_rate", "delay_samples",
+    "noise_angle", "noise_rate", "noise_altitude", "noise_vertical_speed",
+)
+"""Extra inputs recorded per case when the distribution's ``unmodeled`` section is enabled:
+the case's `afbl_jax.UnmodeledDynamics` numbers (``motor_tau`` [s], ``control_rate`` [Hz],
+0 = continuous controller, ``delay_samples`` [samples], noise standard deviations [rad],
+[rad/s], [m], [m/s])."""
+_UNMODELED_STREAM = 0x554E4D44  # fold_in constant of the per-case unmodeled key ("UNMD")
 
 
 class CaseBatch(eqx.Module):
@@ -46,8 +57,11 @@ class CaseBatch(eqx.Module):
         scenario: batched `Scenario` (reference, pulses, payload, wind, initial state).
         vehicle: batched true vehicle `QuadrotorParams`.
         model: the controllers' nominal model (unbatched here; batched also accepted).
-        inputs: every sampled number per case, each of shape (n,) (`INPUT_COLUMNS`).
+        inputs: every sampled number per case, each of shape (n,) (`INPUT_COLUMNS`, plus
+            `UNMODELED_COLUMNS` when ``unmodeled`` is set).
         index: global case index of each row, shape (n,).
+        unmodeled: batched `afbl_jax.UnmodeledDynamics` (leading axis = case; static fields
+            shared), or None for the paper's closed loop.
     """
 
     scenario: Scenario
@@ -55,6 +69,12 @@ class CaseBatch(eqx.Module):
     model: QuadrotorParams
     inputs: dict[str, Array]
     index: Array
+    unmodeled: UnmodeledDynamics | None = None
+
+    @property
+    def input_columns(self) -> tuple[str, ...]:
+        """Names of the recorded inputs, in column order."""
+        return INPUT_COLUMNS + (UNMODELED_COLUMNS if self.unmodeled is not None else ())
 
     @property
     def n_cases(self) -> int:
@@ -71,8 +91,10 @@ class CaseBatch(eqx.Module):
         idx = jnp.asarray(indices)
         pick = lambda x: x[idx]  # noqa: E731
         model = jax.tree.map(pick, self.model) if self.model_batched else self.model
+        unmodeled = None if self.unmodeled is None else jax.tree.map(pick, self.unmodeled)
         return CaseBatch(jax.tree.map(pick, self.scenario), jax.tree.map(pick, self.vehicle),
-                         model, {k: v[idx] for k, v in self.inputs.items()}, self.index[idx])
+                         model, {k: v[idx] for k, v in self.inputs.items()}, self.index[idx],
+                         unmodeled)
 
     def __getitem__(self, indices) -> CaseBatch:
         return self.take(indices)
@@ -82,6 +104,12 @@ class CaseBatch(eqx.Module):
         pick = lambda x: x[i]  # noqa: E731
         model = jax.tree.map(pick, self.model) if self.model_batched else self.model
         return jax.tree.map(pick, self.scenario), jax.tree.map(pick, self.vehicle), model
+
+    def unmodeled_case(self, i: int) -> UnmodeledDynamics | None:
+        """The unmodeled-dynamics settings of row i, unbatched (None if not sampled)."""
+        if self.unmodeled is None:
+            return None
+        return jax.tree.map(lambda x: x[i], self.unmodeled)
 
 
 def _uniform(key, rng, shape=()):
@@ -192,7 +220,57 @@ def sample_cases(distribution: Distribution, n_cases: int, seed: int,
     base = jax.random.PRNGKey(int(seed))
     keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
     scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
-    return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index)
+    unmodeled = None
+    if distribution.spec["unmodeled"]["enabled"]:
+        unmodeled, extra = _sample_unmodeled(distribution, keys)
+        inputs = {**inputs, **extra}
+    return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index, unmodeled)
+
+
+def unmodeled_statics(distribution: Distribution) -> dict:
+    """Static `UnmodeledDynamics` fields shared by all cases of an enabled distribution:
+    ``plant``, ``max_samples = ceil(t1 * max control rate)`` (0 = continuous) and
+    ``max_delay`` = the largest delay of the range."""
+    unm = distribution.spec["unmodeled"]
+    rate_hi = float(unm["control_rate"][1])
+    t1 = float(distribution.spec["time"]["t1"])
+    max_samples = int(math.ceil(t1 * rate_hi - 1e-9)) if rate_hi > 0 else 0
+    return {"plant": unm["plant"], "max_samples": max_samples,
+            "max_delay": int(unm["delay_samples"][1])}
+
+
+def _sample_unmodeled(distribution: Distribution, keys) -> tuple[UnmodeledDynamics, dict]:
+    """Per-case unmodeled settings from ``fold_in(case key, _UNMODELED_STREAM)`` (a stream
+    separate from the other inputs, which stay as without the section)."""
+    draws = _unmodeled_sampler(distribution)(keys)
+    extra = {name: draws[name] for name in UNMODELED_COLUMNS}
+    settings = UnmodeledDynamics(
+        **unmodeled_statics(distribution),
+        motor_tau=draws["motor_tau"], control_rate=draws["control_rate"],
+        delay_samples=draws["delay_samples"], noise_angle=draws["noise_angle"],
+        noise_rate=draws["noise_rate"], noise_altitude=draws["noise_altitude"],
+        noise_vertical_speed=draws["noise_vertical_speed"], key=draws["key"],
+    )
+    return settings, extra
+
+
+@functools.lru_cache(maxsize=8)
+def _unmodeled_sampler(distribution: Distribution):
+    unm = distribution.spec["unmodeled"]
+    lo_d, hi_d = (int(v) for v in unm["delay_samples"])
+
+    def one(case_key):
+        k = jax.random.split(jax.random.fold_in(case_key, _UNMODELED_STREAM), 8)
+        out = {"motor_tau": _uniform(k[0], unm["motor_tau"]),
+               "control_rate": _uniform(k[1], unm["control_rate"]),
+               "delay_samples": jax.random.randint(k[2], (), lo_d, hi_d + 1, dtype=jnp.int32)}
+        for j, name in enumerate(("noise_angle", "noise_rate", "noise_altitude",
+                                  "noise_vertical_speed")):
+            out[name] = _uniform(k[3 + j], unm[name])
+        out["key"] = k[7]
+        return out
+
+    return jax.jit(jax.vmap(one))
 
 
 @functools.lru_cache(maxsize=8)
