@@ -158,6 +158,12 @@ def _binned(x, y, edges):
     return np.array(centres), np.array(med), np.array(p10), np.array(p90)
 
 
+def _log_scale_if_positive(ax, axis: str, values) -> None:
+    """Log scale when some plotted value is > 0 (tiny runs may have no bin or no ok run)."""
+    if np.any(np.asarray(values) > 0):
+        (ax.set_yscale if axis == "y" else ax.set_xscale)("log")
+
+
 def figure_ise_vs_payload(cols):
     import matplotlib.pyplot as plt
 
@@ -165,14 +171,16 @@ def figure_ise_vs_payload(cols):
     p = cols["payload_fraction"]
     edges = np.linspace(p.min(), p.max() + 1e-12, 11)
     for ax, metric in zip(axes, ISE_METRICS, strict=True):
+        plotted = [np.zeros(0)]
         for name in controller_names(cols):
             m = (cols["controller"] == name) & (cols["status"] == "ok")
             c, med, lo, hi = _binned(p[m], cols[metric][m], edges)
             (line,) = ax.plot(c, med, marker="o", label=f"{name} median")
             ax.fill_between(c, lo, hi, color=line.get_color(), alpha=0.2, label=f"{name} P10-P90")
+            plotted.append(lo)
         ax.set_xlabel("payload fraction p")
         ax.set_ylabel(metric)
-        ax.set_yscale("log")
+        _log_scale_if_positive(ax, "y", np.concatenate(plotted))
         ax.legend(fontsize=7)
     fig.suptitle("ISE vs payload fraction (ok runs; binned median, P10-P90 band)")
     fig.tight_layout()
@@ -220,12 +228,14 @@ def figure_ecdf(cols):
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for ax, metric in zip(axes, ISE_METRICS, strict=True):
+        plotted = [np.zeros(0)]
         for name in controller_names(cols):
             m = (cols["controller"] == name) & (cols["status"] == "ok")
             x = np.sort(cols[metric][m])
             n_all = int(np.sum(cols["controller"] == name))
             ax.step(x, np.arange(1, len(x) + 1) / n_all, where="post", label=name)
-        ax.set_xscale("log")
+            plotted.append(x)
+        _log_scale_if_positive(ax, "x", np.concatenate(plotted))
         ax.set_xlabel(metric)
         ax.set_ylabel("fraction of all cases (failed runs never reach 1)")
         ax.legend()
