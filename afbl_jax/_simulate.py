@@ -285,46 +285,11 @@ def _simulate(controller, scenario, vehicle, model, limits, solver, rtol, atol, 
         controller.init_state().astype(dtype),
         jnp.zeros(len(COST_LAYOUT), dtype),
     )
-    t0, t1 = scenario.t0, scenario.t1
-    ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype) if n_save else None
-    # separate buffers: after an early stop the trajectory is padded with inf, and the final
-    # state (at the stop time) stays in its own slot
-    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
-    stepsize = diffrax.ClipStepSizeController(
-        diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=scenario.jump_times()
-    )
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(closed_loop_vector_field),
-        solver,
-        t0,
-        t1,
-        None,
-        y0,
-        args=args,
-        saveat=diffrax.SaveAt(subs=saves),
-        stepsize_controller=stepsize,
-        max_steps=max_steps,
-        event=diffrax.Event(_diverged),
-        adjoint=adjoint,
-        throw=False,
-    )
-    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
-    t_final = sol.ts[0][-1]
-    if n_save:
-        save_ts, traj = sol.ts[1], sol.ys[1]
-        signals = jax.vmap(lambda t, y: _signals_and_derivative(t, y, args)[0])(save_ts, traj)
-    else:
-        save_ts = jnp.zeros((0,), dtype)
-        traj = jax.tree.map(lambda a: jnp.zeros((0, *a.shape), a.dtype), y0)
-        signals = jax.tree.map(
-            lambda a: jnp.zeros((0, *a.shape), a.dtype),
-            _signals_and_derivative(t0, y0, args)[0],
-        )
-    finite = jnp.all(jnp.isfinite(final.cost)) & jnp.all(jnp.isfinite(final.plant))
-    steps = tuple(jnp.asarray(sol.stats[k]) for k in
-                  ("num_steps", "num_accepted_steps", "num_rejected_steps"))
-    return make_result(save_ts, traj.plant, traj.controller, signals, final, t_final,
-                       solver_status(sol.result, finite), steps)
+    return solve_closed_loop(closed_loop_vector_field, _diverged,
+                             lambda t, y: _signals_and_derivative(t, y, args)[0], solver,
+                             scenario, y0, args, rtol, atol, n_save, max_steps, adjoint,
+                             lambda y: y)
+
 
 
 def solver_status(result, finite) -> Int[Array, ""]:
@@ -367,3 +332,38 @@ def make_result(ts, plant, controller_state, signals: Signals, final: ClosedLoop
         num_accepted_steps=steps[1],
         num_rejected_steps=steps[2],
     )
+
+
+def solve_closed_loop(vector_field, diverged, signals_fn, solver, scenario: Scenario, y0, args,
+                      rtol, atol, n_save, max_steps, adjoint, to_closed_loop) -> SimulationResult:
+    """The adaptive solve shared by the continuous closed loops (`simulate` and the unmodeled
+    loop): PID step control clipped onto every jump time, the divergence event, a final-state
+    buffer separate from the ``n_save`` trajectory samples (padded with inf after an early
+    stop), the signals at the samples (``signals_fn(t, y)``) and the status.
+    ``to_closed_loop`` maps the final ODE state to a `ClosedLoopState`."""
+    dtype = jnp.result_type(float)
+    t0, t1 = scenario.t0, scenario.t1
+    ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype) if n_save else None
+    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
+    stepsize = diffrax.ClipStepSizeController(
+        diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=scenario.jump_times()
+    )
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vector_field), solver, t0, t1, None, y0, args=args,
+        saveat=diffrax.SaveAt(subs=saves), stepsize_controller=stepsize, max_steps=max_steps,
+        event=diffrax.Event(diverged), adjoint=adjoint, throw=False,
+    )
+    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
+    if n_save:
+        save_ts, traj = sol.ts[1], sol.ys[1]
+        signals = jax.vmap(signals_fn)(save_ts, traj)
+    else:
+        save_ts = jnp.zeros((0,), dtype)
+        traj = jax.tree.map(lambda a: jnp.zeros((0, *a.shape), a.dtype), y0)
+        signals = jax.tree.map(lambda a: jnp.zeros((0, *a.shape), a.dtype),
+                               signals_fn(t0, y0))
+    finite = jnp.all(jnp.isfinite(final.cost)) & jnp.all(jnp.isfinite(final.plant))
+    steps = tuple(jnp.asarray(sol.stats[k]) for k in
+                  ("num_steps", "num_accepted_steps", "num_rejected_steps"))
+    return make_result(save_ts, traj.plant, traj.controller, signals, to_closed_loop(final),
+                       sol.ts[0][-1], solver_status(sol.result, finite), steps)

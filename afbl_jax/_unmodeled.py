@@ -462,30 +462,12 @@ def _simulate_continuous(controller, scenario, vehicle, model, limits, settings,
     args = _UArgs(controller, scenario, vehicle, model, limits, settings, None)
     dtype = jnp.result_type(float)
     y0, _ = _initial_state(controller, scenario, settings, args, dtype)
-    t0, t1 = scenario.t0, scenario.t1
-    ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype) if n_save else None
-    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
-    stepsize = diffrax.ClipStepSizeController(
-        diffrax.PIDController(rtol=rtol, atol=atol), jump_ts=scenario.jump_times()
-    )
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field), solver, t0, t1, None, y0, args=args,
-        saveat=diffrax.SaveAt(subs=saves), stepsize_controller=stepsize, max_steps=max_steps,
-        event=diffrax.Event(_diverged), adjoint=adjoint, throw=False,
-    )
-    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
-    if n_save:
-        save_ts, traj = sol.ts[1], sol.ys[1]
-        signals = jax.vmap(lambda t, y: _signals_and_derivative(t, y, args)[0])(save_ts, traj)
-    else:
-        save_ts = jnp.zeros((0,), dtype)
-        traj = jax.tree.map(lambda a: jnp.zeros((0, *a.shape), a.dtype), y0)
-        signals = _empty_like_signals(args, t0, y0)
-    finite = jnp.all(jnp.isfinite(final.cost)) & jnp.all(jnp.isfinite(final.plant))
-    steps = tuple(jnp.asarray(sol.stats[k]) for k in
-                  ("num_steps", "num_accepted_steps", "num_rejected_steps"))
-    status = _solver_status(sol.result, finite)
-    return _result(save_ts, traj, signals, final, sol.ts[0][-1], status, steps)
+    from ._simulate import ClosedLoopState, solve_closed_loop
+
+    return solve_closed_loop(
+        _vector_field, _diverged, lambda t, y: _signals_and_derivative(t, y, args)[0], solver,
+        scenario, y0, args, rtol, atol, n_save, max_steps, adjoint,
+        lambda y: ClosedLoopState(y.plant, y.controller, y.cost))
 
 
 def _simulate_digital(controller, scenario, vehicle, model, limits, settings, solver, rtol, atol,
