@@ -70,3 +70,4 @@ from ._batch import STRATEGIES as STRATEGIES
 from ._batch import BatchMetrics as BatchMetrics
 from ._batch import ensemble_rms_norm as ensemble_rms_norm
 from ._batch import simulate_batch as simulate_batch
+from ._devices import configure_cpu_devices as configure_cpu_devices

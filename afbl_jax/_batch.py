@@ -28,12 +28,30 @@ Ensemble details:
   use a looser rtol, float32 resolves ~1e-7 relative; the accuracy of float32 is measured in
   `afbl bench`).
 
+``group_size`` (ensemble only) splits the batch into groups of that many cases, each group one
+ODE system with its own shared step sequence, the groups vectorised with ``jax.vmap``. Groups
+matter when cases have *different* jump times (Monte-Carlo cases: random pulse and payload
+times): one ensemble of N such cases steps onto all of their jump times, a group only onto its
+own few, while ``jax.vmap`` over groups still amortises the solver's per-step work over the group.
+
 ``chunk_size`` splits a batch into consecutive chunks solved one after the other inside the same
 compiled call (``jax.lax.map``): smaller working sets stay in cache, and each ensemble chunk has
 its own step sequence.
 
-Both strategies are jitted once per (strategy, solver, tolerances, dtype, batch shapes): chunks
-of the same size reuse the compiled program (`trace_count` counts traces, for tests).
+Devices: the case axis is split over ``devices`` (default: all local devices of the default
+backend) with ``jax.shard_map``; every device solves its own cases independently (no
+communication per step). On a CPU, XLA exposes one device unless
+``XLA_FLAGS=--xla_force_host_platform_device_count=K`` is set before JAX is imported (the
+``afbl`` command line sets it to the number of cores; see the README). The batch is padded with
+copies of case 0 to a multiple of (devices x chunk x group); the padding is dropped.
+
+Peaks: with ``n_save > 0`` the state is sampled at ``n_save`` equally spaced times (diffrax
+``SubSaveAt(ts, fn)``: only three numbers per case and sample are kept) and `BatchMetrics` holds
+the peak attitude error, peak altitude error and peak commanded rotor speed / omega_max over the
+samples before each run's end (`sample_peaks`), as the Monte-Carlo results table needs.
+
+Both strategies are jitted once per (strategy, solver, tolerances, dtype, batch shapes, devices):
+chunks of the same size reuse the compiled program (`trace_count` counts traces, for tests).
 """
 
 from __future__ import annotations
@@ -46,6 +64,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._mixer import rotor_speeds_sq_from_inputs
 from ._params import QuadrotorParams
 from ._scenarios import Scenario
 from ._simulate import (
@@ -58,6 +77,7 @@ from ._simulate import (
     DivergenceLimits,
     _Args,
     _diverged,
+    _signals_and_derivative,
     closed_loop_vector_field,
     get_solver,
     simulate,
@@ -87,6 +107,8 @@ class BatchMetrics(eqx.Module):
         t_final: time each run ended [s] (t1, or the divergence time).
         num_steps: solver steps (accepted + rejected); for ``"ensemble"`` the shared count.
         num_rejected_steps: rejected steps (shared count for ``"ensemble"``).
+        peak_attitude_error [rad], peak_altitude_error [m], peak_saturation [-]: maxima over
+            the ``n_save`` samples before the run's end (`sample_peaks`); NaN when n_save = 0.
     """
 
     ise_attitude: Float[Array, " N"]
@@ -97,10 +119,32 @@ class BatchMetrics(eqx.Module):
     t_final: Float[Array, " N"]
     num_steps: Int[Array, " N"]
     num_rejected_steps: Int[Array, " N"]
+    peak_attitude_error: Float[Array, " N"]
+    peak_altitude_error: Float[Array, " N"]
+    peak_saturation: Float[Array, " N"]
 
     @property
     def ok(self) -> Array:
         return self.status == STATUS_OK
+
+
+def sample_peaks(error: Float[Array, 4], u_command: Float[Array, 4], vehicle: QuadrotorParams,
+                 model: QuadrotorParams) -> Array:
+    """The three quantities whose maxima over the saved samples are a run's peaks, shape (3,):
+    max(|e_phi|, |e_theta|, |e_psi|) [rad], |e_z| [m], and max over the rotors of commanded rotor
+    speed / omega_max [-] (commanded speed = sqrt of the mixer's commanded Omega^2 through the
+    controller's ``model``, clipped at 0; >= 1 means the command hit the rotor limit)."""
+    err = jnp.abs(error)
+    w_cmd = rotor_speeds_sq_from_inputs(model, u_command)
+    sat = jnp.sqrt(jnp.maximum(w_cmd, 0.0)) / vehicle.omega_max
+    return jnp.stack([jnp.max(err[:3]), err[3], jnp.max(sat)])
+
+
+def peaks_over_samples(ts, samples, t_final) -> Array:
+    """Max over the samples at ``ts`` (shape (n,)) with ts <= t_final of ``samples`` (n, 3);
+    non-finite samples are skipped. Returns shape (3,)."""
+    valid = (ts <= t_final)[:, None] & jnp.isfinite(samples)
+    return jnp.max(jnp.where(valid, samples, 0.0), axis=0)
 
 
 def ensemble_rms_norm(tree) -> Array:
@@ -171,7 +215,7 @@ def _status_from(result, finite, diverged):
 
 
 def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol, dtype,
-              max_steps) -> BatchMetrics:
+              max_steps, n_save) -> BatchMetrics:
     n = scenarios.t0.shape[0]
     args = _Args(controller, scenarios, vehicles, models, limits)
     args = _cast(args, dtype)
@@ -202,6 +246,18 @@ def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rto
         diffrax.PIDController(rtol=rtol, atol=atol, norm=ensemble_rms_norm),
         jump_ts=_union_jump_times(scenarios, dtype),
     )
+    subs = [diffrax.SubSaveAt(t1=True)]
+    if n_save:
+        ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
+
+        def one_sample(t, state, a):
+            sig = _signals_and_derivative(t, state, a)[0]
+            return sample_peaks(sig.error, sig.u_command, a.vehicle, a.model)
+
+        def save_peaks(t, y, a):
+            return jax.vmap(one_sample, in_axes=(None, 0, in_axes))(t, y[0], a)
+
+        subs.append(diffrax.SubSaveAt(ts=ts, fn=save_peaks))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field),
         solver,
@@ -210,72 +266,140 @@ def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rto
         None,
         y0,
         args=args,
-        saveat=diffrax.SaveAt(t1=True),
+        saveat=diffrax.SaveAt(subs=subs),
         stepsize_controller=stepsize,
         max_steps=max_steps,
         throw=False,
     )
-    state, frozen_time = jax.tree.map(lambda a: a[-1], sol.ys)
+    state, frozen_time = jax.tree.map(lambda a: a[-1], sol.ys[0])
     finite = jnp.all(jnp.isfinite(state.plant), axis=1) & jnp.all(
         jnp.isfinite(state.cost), axis=1)
     status = _status_from(sol.result, finite, frozen_time > 0)
     ones = jnp.ones((n,), jnp.int32)
+    t_final = jnp.where(finite, t1 - frozen_time, jnp.nan).astype(dtype)
+    if n_save:
+        peaks = jax.vmap(peaks_over_samples, in_axes=(None, 1, 0))(sol.ts[1], sol.ys[1], t_final)
+    else:
+        peaks = jnp.full((n, 3), jnp.nan, dtype)
     return BatchMetrics(
         ise_attitude=state.cost[:, 0],
         ise_altitude=state.cost[:, 1],
         effort=state.cost[:, 2],
         saturation=state.cost[:, 3],
         status=status,
-        t_final=jnp.where(finite, t1 - frozen_time, jnp.nan).astype(dtype),
+        t_final=t_final,
         num_steps=ones * sol.stats["num_steps"],
         num_rejected_steps=ones * sol.stats["num_rejected_steps"],
+        peak_attitude_error=peaks[:, 0],
+        peak_altitude_error=peaks[:, 1],
+        peak_saturation=peaks[:, 2],
     )
 
 
 def _vmap(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol, dtype,
-          max_steps) -> BatchMetrics:
+          max_steps, n_save) -> BatchMetrics:
     def one(c, s, v, m):
-        r = simulate(c, s, v, m, solver=solver, rtol=rtol, atol=atol, n_save=0,
+        r = simulate(c, s, v, m, solver=solver, rtol=rtol, atol=atol, n_save=n_save,
                      max_steps=max_steps, limits=limits)
+        if n_save:
+            samples = jax.vmap(lambda e, u: sample_peaks(e, u, v, m))(r.error, r.u_command)
+            peaks = peaks_over_samples(r.ts, samples, r.t_final)
+        else:
+            peaks = jnp.full((3,), jnp.nan, r.t_final.dtype)
         return BatchMetrics(r.ise_attitude, r.ise_altitude, r.effort, r.saturation, r.status,
-                            r.t_final, r.num_steps, r.num_rejected_steps)
+                            r.t_final, r.num_steps, r.num_rejected_steps, *peaks)
 
     return jax.vmap(one, in_axes=(axes["controller"], 0, axes["vehicles"], axes["models"]))(
         controller, scenarios, vehicles, models)
 
 
-@eqx.filter_jit
-def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, solver, rtol,
-         atol, dtype, max_steps, chunk_size) -> BatchMetrics:
-    _TRACES["count"] += 1
-    impl = _ensemble if strategy == "ensemble" else _vmap
-    axes = dict(axes_items)
+def _grouped_ensemble(group_size, controller, scenarios, vehicles, models, limits, axes, *rest):
     n = scenarios.t0.shape[0]
-    if chunk_size is None or chunk_size >= n:
-        return impl(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol,
-                    np.dtype(dtype), max_steps)
-    # chunks run one after the other inside this one compiled program (lax.map); the last
-    # chunk is padded with copies of case 0 and the padding is dropped
-    n_chunks = -(-n // chunk_size)
-    pad = n_chunks * chunk_size - n
+    if group_size is None or group_size >= n:
+        return _ensemble(controller, scenarios, vehicles, models, limits, axes, *rest)
+    groups = n // group_size
 
     def split(x):
-        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]) if pad else x
-        return x.reshape(n_chunks, chunk_size, *x.shape[1:])
+        return x.reshape(groups, group_size, *x.shape[1:])
 
-    batched = {"scenarios": scenarios, "controller": controller, "vehicles": vehicles,
-               "models": models}
-    mapped = {k: jax.tree.map(split, v) for k, v in batched.items() if k == "scenarios"
-              or axes[k] == 0}
-    fixed = {k: v for k, v in batched.items() if k not in mapped}
+    g_axes = {k: (0 if v == 0 else None) for k, v in axes.items()}
+    out = jax.vmap(
+        lambda c, s, v, m: _ensemble(c, s, v, m, limits, axes, *rest),
+        in_axes=(g_axes["controller"], 0, g_axes["vehicles"], g_axes["models"]),
+    )(*(jax.tree.map(split, t) if g_axes.get(k, 0) == 0 else t for k, t in
+        (("controller", controller), ("scenarios", scenarios), ("vehicles", vehicles),
+         ("models", models))))
+    return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
 
-    def one_chunk(part):
+
+def _pad_cases(x, n_pad):
+    if not n_pad:
+        return x
+    return jnp.concatenate([x, jnp.broadcast_to(x[:1], (n_pad, *x.shape[1:]))])
+
+
+@eqx.filter_jit
+def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, solver, rtol,
+         atol, dtype, max_steps, chunk_size, group_size, n_save, devices) -> BatchMetrics:
+    _TRACES["count"] += 1
+    axes = dict(axes_items)
+    n = scenarios.t0.shape[0]
+    n_dev = len(devices)
+    # layout: case i goes to device i // per_dev (consecutive blocks, so groups of consecutive
+    # cases are the same with any device count when per_dev is a multiple of group_size); each
+    # device pads its block with copies of case 0 to n_chunks chunks of `chunk` cases (a whole
+    # number of groups); the padding is dropped at the end
+    group = group_size or 1
+    per_dev = -(-n // n_dev)
+    chunk = per_dev if chunk_size is None else min(chunk_size, per_dev)
+    chunk = -(-chunk // group) * group
+    n_chunks = -(-per_dev // chunk)
+    local_n = n_chunks * chunk
+
+    def layout(x):
+        x = _pad_cases(x, n_dev * per_dev - n).reshape(n_dev, per_dev, *x.shape[1:])
+        if local_n > per_dev:
+            fill = jnp.broadcast_to(x[:1, :1], (n_dev, local_n - per_dev, *x.shape[2:]))
+            x = jnp.concatenate([x, fill], axis=1)
+        return x.reshape(n_dev * local_n, *x.shape[2:])
+
+    def unlayout(x):
+        return x.reshape(n_dev, local_n, *x.shape[1:])[:, :per_dev].reshape(
+            n_dev * per_dev, *x.shape[1:])[:n]
+
+    batched = {"scenarios": scenarios, **{k: t for k, t in (
+        ("controller", controller), ("vehicles", vehicles), ("models", models)) if axes[k] == 0}}
+    fixed = {k: t for k, t in (("controller", controller), ("vehicles", vehicles),
+                               ("models", models)) if axes[k] != 0}
+    batched = jax.tree.map(layout, batched)
+
+    def solve(part, fixed):
         b = {**fixed, **part}
-        return impl(b["controller"], b["scenarios"], b["vehicles"], b["models"], limits, axes,
-                    solver, rtol, atol, np.dtype(dtype), max_steps)
+        args = (b["controller"], b["scenarios"], b["vehicles"], b["models"], limits, axes, solver,
+                rtol, atol, np.dtype(dtype), max_steps, n_save)
+        if strategy == "ensemble":
+            return _grouped_ensemble(group_size, *args)
+        return _vmap(*args)
 
-    out = jax.lax.map(one_chunk, mapped)
-    return jax.tree.map(lambda x: x.reshape(n_chunks * chunk_size, *x.shape[2:])[:n], out)
+    def local(part, fixed):
+        # this device's cases, as consecutive chunks inside the one compiled program
+        if n_chunks == 1:
+            return solve(part, fixed)
+        split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), part)
+        out = jax.lax.map(lambda p: solve(p, fixed), split)
+        return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
+
+    if n_dev == 1:
+        out = local(batched, fixed)
+    else:
+        from jax.sharding import Mesh, PartitionSpec
+
+        mesh = Mesh(np.asarray(devices), ("cases",))
+        # each device solves its own cases: no collective inside the solve (check_vma=False:
+        # diffrax's while-loop carries start unvarying and become device-varying)
+        out = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec("cases"), PartitionSpec()),
+                            out_specs=PartitionSpec("cases"), check_vma=False)(batched, fixed)
+    return jax.tree.map(unlayout, out)
 
 
 def simulate_batch(
@@ -292,6 +416,9 @@ def simulate_batch(
     max_steps: int = 16384,
     limits: DivergenceLimits | None = None,
     chunk_size: int | None = None,
+    group_size: int | None = None,
+    n_save: int = 0,
+    devices=None,
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -310,7 +437,13 @@ def simulate_batch(
         chunk_size: solve the batch as consecutive chunks of this many cases inside the one
             compiled call (``jax.lax.map``); with ``"ensemble"`` each chunk has its own shared
             step sequence. Smaller chunks keep the working set in cache (the benchmark's
-            ``ensemble_chunked`` rows). None (default): one chunk.
+            ``ensemble_chunked`` rows). None (default): one chunk per device.
+        group_size: ``"ensemble"`` only: groups of this many cases are separate ensembles (own
+            step sequences), vectorised with ``jax.vmap``; for cases with different jump times
+            (module docstring). None (default): the whole chunk is one ensemble.
+        n_save: number of equally spaced samples for the peak metrics (0: no peaks, NaN).
+        devices: sequence of devices to split the case axis over (``jax.shard_map``); None
+            (default): all local devices of the default backend.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -323,8 +456,16 @@ def simulate_batch(
     check_positive("simulate_batch", "atol", atol)
     if int(max_steps) <= 0:
         raise ValueError(f"simulate_batch: max_steps must be > 0, got {max_steps}.")
-    if chunk_size is not None and int(chunk_size) <= 0:
-        raise ValueError(f"simulate_batch: chunk_size must be > 0 or None, got {chunk_size}.")
+    for name, v in (("chunk_size", chunk_size), ("group_size", group_size)):
+        if v is not None and (isinstance(v, bool) or int(v) <= 0):
+            raise ValueError(f"simulate_batch: {name} must be an integer > 0 or None, got {v!r}.")
+    if group_size is not None and strategy != "ensemble":
+        raise ValueError("simulate_batch: group_size applies to strategy 'ensemble' only.")
+    if isinstance(n_save, bool) or int(n_save) < 0 or int(n_save) == 1:
+        raise ValueError(f"simulate_batch: n_save must be 0 or >= 2, got {n_save!r}.")
+    devices = tuple(jax.local_devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("simulate_batch: devices must not be empty.")
     default = jnp.result_type(float)
     dtype = np.dtype(default if dtype is None else dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
@@ -341,4 +482,5 @@ def simulate_batch(
                                  f"cases, got values from {v.min()} to {v.max()} [s].")
     return _run(controller, scenarios, vehicles, models, limits, tuple(sorted(axes.items())),
                 strategy, get_solver(solver), float(rtol), float(atol), dtype.name,
-                int(max_steps), None if chunk_size is None else int(chunk_size))
+                int(max_steps), None if chunk_size is None else int(chunk_size),
+                None if group_size is None else int(group_size), int(n_save), devices)

@@ -36,6 +36,7 @@ Differences from the printed eq. (15) (see docs/paper_notes.md):
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from ._params import QuadrotorParams
 from ._typing import Array, PlantState, Scalar, Vec3, Vec4
@@ -47,8 +48,8 @@ STATE_LAYOUT: tuple[str, ...] = (
 STATE_SIZE = len(STATE_LAYOUT)
 CHANNELS: tuple[str, ...] = ("phi", "theta", "psi", "z")
 """Controlled channels, in the order used by gains, references and virtual inputs."""
-CHANNEL_INDEX = jnp.array([3, 4, 5, 2])
-CHANNEL_RATE_INDEX = jnp.array([9, 10, 11, 8])
+CHANNEL_INDEX = np.array([3, 4, 5, 2])
+CHANNEL_RATE_INDEX = np.array([9, 10, 11, 8])
 
 
 def channel_values(state: PlantState) -> tuple[Vec4, Vec4]:

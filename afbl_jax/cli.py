@@ -83,9 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_reproduce(sub)
+    from .montecarlo._study import add_merge_subcommand
     from .montecarlo._study import add_subcommand as _add_montecarlo
 
     _add_montecarlo(sub)
+    add_merge_subcommand(sub)
     add_unmodeled_subcommand(sub)
     add_tune_parser(sub)
     from ._bench import add_bench_parser
@@ -95,6 +97,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``afbl`` command. Run from the command line (``argv`` None), it first splits the CPU
+    into one XLA device per core (`afbl_jax.configure_cpu_devices`; ``AFBL_CPU_DEVICES=1``
+    keeps one); called with an explicit ``argv`` (tests, scripts) it leaves devices alone."""
+    if argv is None:
+        from ._devices import configure_cpu_devices
+
+        try:
+            configure_cpu_devices()
+        except (RuntimeError, ValueError) as err:
+            print(f"afbl: warning: {err}", file=sys.stderr)
     parser = build_parser()
     args = parser.parse_args(argv)
     return int(args.func(args) or 0)

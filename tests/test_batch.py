@@ -175,3 +175,36 @@ def test_chunked_ensemble_equals_unchunked(cases, tight_ensemble):
     np.testing.assert_allclose(_ise(m), _ise(tight_ensemble), rtol=1e-7)
     with pytest.raises(ValueError, match="chunk_size"):
         A.simulate_batch(A.AFBL(), cases[0], chunk_size=0)
+
+
+def test_groups_are_independent_ensembles(cases):
+    """group_size=2: each pair of cases is its own ensemble, exactly as if solved alone."""
+    scenarios, ctrl = cases[0], A.AFBL()
+    grouped = A.simulate_batch(ctrl, scenarios, strategy="ensemble", group_size=2)
+    for lo in (0, 2):
+        alone = A.simulate_batch(ctrl, jax.tree.map(lambda x, lo=lo: x[lo:lo + 2], scenarios),
+                                 strategy="ensemble")
+        np.testing.assert_allclose(_ise(grouped)[lo:lo + 2], _ise(alone), rtol=1e-12)
+        assert np.all(np.asarray(grouped.num_steps[lo:lo + 2]) == int(alone.num_steps[0]))
+    with pytest.raises(ValueError, match="group_size"):
+        A.simulate_batch(ctrl, scenarios, strategy="vmap", group_size=2)
+
+
+def test_peaks_match_single_simulation_samples(cases):
+    """n_save: the ensemble's saved peaks (SubSaveAt fn) are the maxima of the signals of a
+    single `simulate` sampled at the same times (tight tolerances on both)."""
+    scenarios, ctrl = cases[0], A.AFBL()
+    m = A.simulate_batch(ctrl, scenarios, strategy="ensemble", n_save=101, group_size=2,
+                         **TIGHT)
+    vm = A.simulate_batch(ctrl, scenarios, strategy="vmap", n_save=101, **TIGHT)
+    v = A.QuadrotorParams()
+    for i in range(N):
+        r = A.simulate(ctrl, _case(scenarios, i), n_save=101, **TIGHT)
+        w = np.asarray(jax.vmap(lambda u: A.rotor_speeds_sq_from_inputs(v, u))(r.u_command))
+        expect = [np.max(np.abs(r.error[:, :3])), np.max(np.abs(r.error[:, 3])),
+                  np.max(np.sqrt(np.maximum(w, 0.0))) / float(v.omega_max)]
+        for got in (m, vm):
+            peaks = [got.peak_attitude_error[i], got.peak_altitude_error[i],
+                     got.peak_saturation[i]]
+            np.testing.assert_allclose(peaks, expect, rtol=1e-7)
+    assert np.all(np.isnan(np.asarray(A.simulate_batch(ctrl, scenarios).peak_saturation)))

@@ -2,9 +2,23 @@
 
 For every chunk of ``chunk_size`` cases (the last one padded with the following case indices,
 so every chunk has the same shape and nothing recompiles) and every controller, a *strategy*
-maps ``(controller, chunk, settings) -> per-case metrics`` (`METRIC_NAMES`). The default
-strategy ``"vmap"`` is ``jax.jit(jax.vmap(simulate))``; others can be added with
-`register_strategy` (e.g. a solver that integrates a whole chunk as one ODE system).
+maps ``(controller, chunk, settings, devices) -> per-case metrics`` (`METRIC_NAMES`). Built in
+(`afbl_jax.simulate_batch` underneath, case axis split over ``devices``):
+
+- ``"ensemble_f32"`` (the default; `DEFAULT_STRATEGY`): float32, groups of `GROUP_SIZE`
+  consecutive cases each solved as one ODE system (shared steps, every case meeting its own
+  tolerance), the groups vectorised, each device working through its cases `INNER_CHUNK` at a
+  time; default tolerances rtol 1e-5, atol 1e-6 (float32 cannot honour 1e-6 / 1e-8). The
+  fastest path that meets the accuracy bound (max relative ISE error <= 1e-3 against a tight
+  float64 reference; measured by `afbl bench` and checked by the tests).
+- ``"ensemble"``: the same in float64 (default tolerances rtol 1e-6, atol 1e-8).
+- ``"vmap"``: ``jax.vmap`` over `afbl_jax.simulate` in float64 (every case its own step
+  sequence; results independent of how cases are chunked); the only strategy that simulates
+  the distribution's ``[unmodeled]`` section (chosen automatically when it is enabled).
+
+Ensemble results depend (within the tolerance) on which cases share a group: the same case in a
+different chunking or group can differ by ~rtol. Resuming is exact (same chunks).
+Other strategies can be added with `register_strategy`.
 
 Per-case metrics (from `afbl_jax.simulate`, saved samples at ``n_save`` equally spaced times):
 
@@ -27,19 +41,19 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from .._batch import peaks_over_samples, sample_peaks, simulate_batch
 from .._gains_io import gains_to_dict
-from .._mixer import rotor_speeds_sq_from_inputs
 from .._simulate import STATUS_NAMES, DivergenceLimits, simulate
 from ..controllers import AbstractController
 from ._distribution import Distribution
@@ -54,18 +68,39 @@ RESULTS_FILE = "results.parquet"
 STATUS_LABELS = ("ok", "diverged", "solver_failed")
 
 
+DEFAULT_STRATEGY = "ensemble_f32"
+GROUP_SIZE = 4
+"""Cases per ensemble group (measured: fewer shared jump times than larger groups, less per-step
+solver work per case than single cases)."""
+INNER_CHUNK = 128
+"""Cases per device solved at a time inside one compiled call (keeps the working set in cache)."""
+STRATEGY_TOLERANCES = {"ensemble_f32": (1e-5, 1e-6), "ensemble": (1e-6, 1e-8),
+                       "vmap": (1e-6, 1e-8)}
+"""Default (rtol, atol) per strategy (used when `SolverSettings` leaves them None)."""
+
+
 @dataclass(frozen=True)
 class SolverSettings:
-    """Solver configuration of a Monte-Carlo run (static: changing it recompiles)."""
+    """Solver configuration of a Monte-Carlo run (static: changing it recompiles).
+
+    ``rtol``/``atol`` None: the strategy's defaults (`STRATEGY_TOLERANCES`, see
+    `with_tolerances_for`)."""
 
     solver: str = "tsit5"
-    rtol: float = 1e-6
-    atol: float = 1e-8
+    rtol: float | None = None
+    atol: float | None = None
     n_save: int = 401
     max_steps: int = 16384
 
+    def with_tolerances_for(self, strategy: str) -> SolverSettings:
+        """These settings with unset tolerances filled in from ``strategy``'s defaults."""
+        rtol, atol = STRATEGY_TOLERANCES.get(strategy, STRATEGY_TOLERANCES["vmap"])
+        return SolverSettings(self.solver, rtol if self.rtol is None else self.rtol,
+                              atol if self.atol is None else self.atol, self.n_save,
+                              self.max_steps)
+
     def __post_init__(self):
-        if not (self.rtol > 0 and self.atol > 0):
+        if not ((self.rtol is None or self.rtol > 0) and (self.atol is None or self.atol > 0)):
             raise ValueError(f"rtol and atol must be > 0, got {self.rtol}, {self.atol}.")
         if int(self.n_save) < 2 or int(self.max_steps) < 1:
             raise ValueError(f"n_save must be >= 2 and max_steps >= 1, got {self.n_save}, "
@@ -76,24 +111,18 @@ def case_metrics(controller: AbstractController, scenario, vehicle, model,
                  settings: SolverSettings, unmodeled=None) -> dict[str, jax.Array]:
     """Metrics of one case (unbatched); see the module docstring. ``unmodeled``: the case's
     `afbl_jax.UnmodeledDynamics` (None = the paper's closed loop)."""
+    settings = settings.with_tolerances_for("vmap")
     r = simulate(controller, scenario, vehicle, model, solver=settings.solver,
                  rtol=settings.rtol, atol=settings.atol, n_save=settings.n_save,
                  max_steps=settings.max_steps, limits=DivergenceLimits(), unmodeled=unmodeled)
-    valid = r.ts <= r.t_final
-
-    def peak(x):
-        x = jnp.where(valid & jnp.isfinite(x), x, 0.0)
-        return jnp.max(x)
-
-    err = jnp.abs(r.error)
-    w_cmd = jax.vmap(lambda u: rotor_speeds_sq_from_inputs(model, u))(r.u_command)
-    sat = jnp.sqrt(jnp.maximum(w_cmd, 0.0)) / vehicle.omega_max
+    samples = jax.vmap(lambda e, u: sample_peaks(e, u, vehicle, model))(r.error, r.u_command)
+    peaks = peaks_over_samples(r.ts, samples, r.t_final)
     return {
         "ise_attitude": r.ise_attitude,
         "ise_altitude": r.ise_altitude,
-        "peak_attitude_error": peak(jnp.max(err[:, :3], axis=1)),
-        "peak_altitude_error": peak(err[:, 3]),
-        "peak_saturation": peak(jnp.max(sat, axis=1)),
+        "peak_attitude_error": peaks[0],
+        "peak_altitude_error": peaks[1],
+        "peak_saturation": peaks[2],
         "solver_steps": r.num_steps,
         "t_final": r.t_final,
         "status": r.status,
@@ -110,27 +139,68 @@ def _vmap_chunk(controller, chunk: CaseBatch, settings: SolverSettings):
         controller, chunk.scenario, chunk.vehicle, chunk.model, settings, chunk.unmodeled)
 
 
-def vmap_strategy(controller: AbstractController, chunk: CaseBatch,
-                  settings: SolverSettings) -> dict[str, jax.Array]:
-    """``jax.jit(jax.vmap(case_metrics))`` over the chunk's cases."""
+def _batch_strategy(strategy: str, dtype: str, group_size: int | None) -> Strategy:
+    def run(controller, chunk: CaseBatch, settings: SolverSettings, devices=None):
+        m = simulate_batch(
+            controller, chunk.scenario, chunk.vehicle, chunk.model, strategy=strategy,
+            solver=settings.solver, rtol=settings.rtol, atol=settings.atol, dtype=dtype,
+            max_steps=settings.max_steps, n_save=settings.n_save, group_size=group_size,
+            chunk_size=INNER_CHUNK, devices=devices)
+        return {"ise_attitude": m.ise_attitude, "ise_altitude": m.ise_altitude,
+                "peak_attitude_error": m.peak_attitude_error,
+                "peak_altitude_error": m.peak_altitude_error,
+                "peak_saturation": m.peak_saturation, "solver_steps": m.num_steps,
+                "t_final": m.t_final, "status": m.status}
+
+    return run
+
+
+_batch_vmap = _batch_strategy("vmap", "float64", None)
+
+
+def vmap_strategy(controller: AbstractController, chunk: CaseBatch, settings: SolverSettings,
+                  devices=None) -> dict[str, jax.Array]:
+    """``jax.vmap`` over `case_metrics` (float64); with ``chunk.unmodeled`` the unmodeled
+    closed loop (its chunk placed over ``devices`` with `shard_chunk`)."""
+    if chunk.unmodeled is None:
+        return _batch_vmap(controller, chunk, settings, devices)
+    if devices is not None and len(devices) > 1:
+        chunk = shard_chunk(chunk, devices)
     return _vmap_chunk(controller, chunk, settings)
 
 
-Strategy = Callable[[AbstractController, CaseBatch, SolverSettings], dict]
-STRATEGIES: dict[str, Strategy] = {"vmap": vmap_strategy}
-"""Chunk strategies by name: ``(controller, chunk, settings) -> metrics dict``."""
+Strategy = Callable[..., dict]
+"""``(controller, chunk, settings, devices) -> metrics dict`` (devices: tuple or None)."""
+STRATEGIES: dict[str, Strategy] = {
+    "ensemble_f32": _batch_strategy("ensemble", "float32", GROUP_SIZE),
+    "ensemble": _batch_strategy("ensemble", "float64", GROUP_SIZE),
+    "vmap": vmap_strategy,
+}
+"""Chunk strategies by name (see the module docstring)."""
 UNMODELED_STRATEGIES: set[str] = {"vmap"}
 """Strategies that simulate ``chunk.unmodeled`` (others reject chunks that carry it)."""
 
 
 def register_strategy(name: str, fn: Strategy, *, unmodeled: bool = False) -> None:
-    """Make ``fn`` available as ``strategy=name`` (and ``--strategy name``); ``unmodeled``:
-    ``fn`` honours ``chunk.unmodeled`` (unmodeled-dynamics settings per case)."""
+    """Make ``fn`` available as ``strategy=name`` (and ``--strategy name``); ``fn(controller,
+    chunk, settings, devices)`` returns the `METRIC_NAMES` arrays; ``unmodeled``: ``fn`` honours
+    ``chunk.unmodeled`` (unmodeled-dynamics settings per case)."""
     STRATEGIES[name] = fn
     if unmodeled:
         UNMODELED_STRATEGIES.add(name)
     else:
         UNMODELED_STRATEGIES.discard(name)
+
+
+def resolve_strategy(strategy: str | None, distribution: Distribution) -> str:
+    """``None``/``"auto"``: `DEFAULT_STRATEGY`, or ``"vmap"`` when the distribution's
+    ``[unmodeled]`` section is enabled (only it simulates those dynamics)."""
+    if strategy in (None, "auto"):
+        return "vmap" if distribution.spec["unmodeled"]["enabled"] else DEFAULT_STRATEGY
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown strategy {strategy!r}; allowed: auto, "
+                         f"{', '.join(STRATEGIES)}.")
+    return strategy
 
 
 def shard_chunk(chunk: CaseBatch, devices=None) -> CaseBatch:
@@ -155,10 +225,12 @@ def shard_chunk(chunk: CaseBatch, devices=None) -> CaseBatch:
     return jax.tree.map(place, chunk)
 
 
-def run_chunk(controller: AbstractController, chunk: CaseBatch, *, strategy: str = "vmap",
-              settings: SolverSettings | None = None, shard: bool = False) -> dict[str, np.ndarray]:
-    """Metrics of every case of ``chunk`` for ``controller`` as NumPy arrays."""
-    settings = settings or SolverSettings()
+def run_chunk(controller: AbstractController, chunk: CaseBatch, *,
+              strategy: str = DEFAULT_STRATEGY, settings: SolverSettings | None = None,
+              shard: bool = False) -> dict[str, np.ndarray]:
+    """Metrics of every case of ``chunk`` for ``controller`` as NumPy arrays; ``shard``: split
+    the case axis over all local devices (else the default device only)."""
+    settings = (settings or SolverSettings()).with_tolerances_for(strategy)
     try:
         fn = STRATEGIES[strategy]
     except KeyError:
@@ -168,9 +240,8 @@ def run_chunk(controller: AbstractController, chunk: CaseBatch, *, strategy: str
         raise ValueError(f"strategy {strategy!r} does not simulate unmodeled dynamics; with "
                          "the distribution's [unmodeled] section enabled use one of "
                          f"{', '.join(sorted(UNMODELED_STRATEGIES))}.")
-    if shard:
-        chunk = shard_chunk(chunk)
-    out = fn(controller, chunk, settings)
+    devices = tuple(jax.local_devices()) if shard else (jax.local_devices()[0],)
+    out = fn(controller, chunk, settings, devices)
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -195,6 +266,8 @@ def _chunk_table(chunk: CaseBatch, n_valid: int, per_controller: dict[str, dict]
         cols[name] = interleave([x] * len(names))
     for m in METRIC_NAMES:
         cols[m] = interleave([per_controller[c][m] for c in names])
+        if np.issubdtype(cols[m].dtype, np.floating):
+            cols[m] = cols[m].astype(np.float64)  # one schema whatever the strategy's dtype
     cols["status"] = status_label(cols["status"])
     for k in ("solver_steps", "turbulence_level", "profile", "delay_samples"):
         if k in cols:
@@ -213,9 +286,20 @@ class MonteCarloConfig:
     chunk_size: int
     strategy: str
     settings: dict
+    hosts: list = field(default_factory=lambda: [0, 1])  # [host index, host count]
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def chunk_file(chunk_dir: Path, c: int) -> Path:
+    """Path of chunk ``c``'s results (global chunk numbering, the same on every host)."""
+    return chunk_dir / f"chunk_{c:06d}.parquet"
+
+
+def host_chunks(n_chunks: int, host_index: int, host_count: int) -> range:
+    """The chunks host ``host_index`` of ``host_count`` runs: c = host_index (mod host_count)."""
+    return range(int(host_index), int(n_chunks), int(host_count))
 
 
 def _atomic_write_table(table: pa.Table, path: Path) -> None:
@@ -232,10 +316,12 @@ def run_montecarlo(
     out: str | Path | None = None,
     *,
     chunk_size: int = 256,
-    strategy: str = "vmap",
+    strategy: str | None = None,
     settings: SolverSettings | None = None,
     shard: bool | None = None,
     progress: bool = True,
+    host_index: int = 0,
+    host_count: int = 1,
 ) -> pa.Table:
     """Simulate ``n_cases`` cases for every controller (paired) and return the results table.
 
@@ -245,26 +331,40 @@ def run_montecarlo(
     chunks (resume) and the final ``out/results.parquet`` equals an uninterrupted run's. A
     different configuration in an existing ``out`` raises instead of mixing runs.
 
-    ``shard``: split each chunk's case axis over all JAX devices (default: when there are
-    several); ``chunk_size`` is then rounded up to a multiple of the device count.
+    ``strategy``: a name of `STRATEGIES`, or None/"auto" (`resolve_strategy`). Ensemble
+    groups are consecutive blocks of `GROUP_SIZE` case indices, so with chunk sizes that are
+    multiples of `GROUP_SIZE` the numbers do not depend on the chunk size.
+
+    ``shard``: split each chunk's case axis over all local JAX devices (default: when there are
+    several); ``chunk_size`` is then rounded up to a multiple of devices x `GROUP_SIZE`.
+
+    Several hosts: ``host_index`` i of ``host_count`` P runs only the chunks c = i (mod P)
+    (`host_chunks`) and returns / writes only their rows; `merge_results` joins the hosts'
+    ``out`` folders into the table of a one-host run.
     """
-    settings = settings or SolverSettings()
     if not controllers:
         raise ValueError("run_montecarlo needs at least one controller.")
     if isinstance(n_cases, bool) or int(n_cases) < 1:
         raise ValueError(f"n_cases must be >= 1, got {n_cases!r}.")
     if isinstance(chunk_size, bool) or int(chunk_size) < 1:
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}.")
-    if strategy not in STRATEGIES:
-        raise ValueError(f"unknown strategy {strategy!r}; allowed: {', '.join(STRATEGIES)}.")
-    n_dev = len(jax.devices())
+    if not (int(host_count) >= 1 and 0 <= int(host_index) < int(host_count)):
+        raise ValueError(f"need 0 <= host_index < host_count, got host_index {host_index}, "
+                         f"host_count {host_count}.")
+    strategy = resolve_strategy(strategy, distribution)
+    settings = (settings or SolverSettings()).with_tolerances_for(strategy)
+    n_dev = len(jax.local_devices())
     shard = n_dev > 1 if shard is None else bool(shard)
     chunk_size = int(chunk_size)
-    if shard and chunk_size % n_dev:
-        chunk_size += n_dev - chunk_size % n_dev
+    if shard:
+        # every device gets whole groups of consecutive cases: the ensemble groups (and so the
+        # numbers) are the same as on one device
+        unit = n_dev * GROUP_SIZE
+        chunk_size = -(-chunk_size // unit) * unit
     config = MonteCarloConfig(
         int(n_cases), int(seed), {n: gains_to_dict(c) for n, c in controllers.items()},
         distribution.to_dict(), chunk_size, strategy, asdict(settings),
+        [int(host_index), int(host_count)],
     )
     chunk_dir = None
     if out is not None:
@@ -286,10 +386,13 @@ def run_montecarlo(
 
         from .._meta import git_revision
 
-        done = sum((chunk_dir / f"chunk_{c:06d}.parquet").exists() for c in range(n_chunks))
+        mine = host_chunks(n_chunks, host_index, host_count)
+        done = sum(chunk_file(chunk_dir, c).exists() for c in mine)
         entry = {"started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                  "git_revision": git_revision(), "chunks_already_done": int(done),
-                 "n_chunks": n_chunks}
+                 "n_chunks": len(mine), "host": [int(host_index), int(host_count)],
+                 "devices": [str(d) for d in jax.local_devices()] if shard
+                 else [str(jax.local_devices()[0])]}
         with open(out / "invocations.jsonl", "a") as fh:
             fh.write(json.dumps(entry) + "\n")
     tables = []
@@ -297,11 +400,12 @@ def run_montecarlo(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n_chunks * chunk_size, unit="case", desc="monte carlo")
-    for c in range(n_chunks):
+        bar = tqdm(total=len(host_chunks(n_chunks, host_index, host_count)) * chunk_size,
+                   unit="case", desc="monte carlo")
+    for c in host_chunks(n_chunks, host_index, host_count):
         start = c * chunk_size
         n_valid = min(chunk_size, int(n_cases) - start)
-        path = chunk_dir / f"chunk_{c:06d}.parquet" if chunk_dir is not None else None
+        path = chunk_file(chunk_dir, c) if chunk_dir is not None else None
         if path is not None and path.exists():
             tables.append(pq.read_table(path))
         else:
@@ -320,6 +424,64 @@ def run_montecarlo(
     if out is not None:
         _atomic_write_table(result, out / RESULTS_FILE)
     return result
+
+
+def merge_results(shards: list[str | Path], out: str | Path) -> tuple[pa.Table, dict]:
+    """Join the ``out`` folders of a multi-host run (one per host, same configuration, hosts
+    0..P-1) into ``out/results.parquet`` (rows in case order, equal to a one-host run's) and
+    ``out/run.json``; returns (table, config). Raises ValueError, naming the folder, when a
+    configuration differs, a host is missing or twice, or a chunk file is missing."""
+    if not shards:
+        raise ValueError("merge needs at least one results folder.")
+    configs = {}
+    for d in map(Path, shards):
+        run_file = d / "run.json"
+        if not run_file.exists():
+            raise ValueError(f"{d} is not a Monte-Carlo results folder (no run.json).")
+        configs[d] = json.loads(run_file.read_text())
+    first_dir, first = next(iter(configs.items()))
+    count = int(first["hosts"][1])
+    base = {k: v for k, v in first.items() if k != "hosts"}
+    seen: dict[int, Path] = {}
+    for d, cfg in configs.items():
+        if {k: v for k, v in cfg.items() if k != "hosts"} != base:
+            diff = sorted(k for k in set(cfg) | set(base) if k != "hosts"
+                          and cfg.get(k) != base.get(k))
+            raise ValueError(f"{d} was run with a different configuration than {first_dir} "
+                             f"(differs in: {', '.join(diff)}).")
+        index, n = (int(x) for x in cfg["hosts"])
+        if n != count:
+            raise ValueError(f"{d} is host {index} of {n}, {first_dir} of {count} hosts.")
+        if index in seen:
+            raise ValueError(f"{d} and {seen[index]} are both host {index}.")
+        seen[index] = d
+    missing = sorted(set(range(count)) - set(seen))
+    if missing:
+        raise ValueError(f"results of host(s) {missing} of {count} are missing.")
+    n_chunks = -(-int(base["n_cases"]) // int(base["chunk_size"]))
+    paths = [chunk_file(seen[c % count] / "chunks", c) for c in range(n_chunks)]
+    for c, path in enumerate(paths):
+        if not path.exists():
+            raise ValueError(f"{path} is missing: host {c % count} has not finished (re-run "
+                             "its command to resume it).")
+    out = Path(out)
+    (out / "chunks").mkdir(parents=True, exist_ok=True)
+    tables = []
+    for c, path in enumerate(paths):
+        # the merged folder is a complete one-host run folder (resumable like any other)
+        if path.resolve() != chunk_file(out / "chunks", c).resolve():
+            shutil.copy2(path, chunk_file(out / "chunks", c))
+        tables.append(pq.read_table(path))
+    table = pa.concat_tables(tables)
+    config = {**base, "hosts": [0, 1]}
+    (out / "run.json").write_text(json.dumps(config, indent=2, sort_keys=True))
+    with open(out / "invocations.jsonl", "w") as fh:
+        for index in sorted(seen):
+            log = seen[index] / "invocations.jsonl"
+            if log.exists():
+                fh.write(log.read_text())
+    _atomic_write_table(table, out / RESULTS_FILE)
+    return table, config
 
 
 def read_results(path: str | Path) -> dict[str, np.ndarray]:
