@@ -76,9 +76,8 @@ from ._simulate import (
     ClosedLoopState,
     DivergenceLimits,
     _Args,
-    _diverged,
     _signals_and_derivative,
-    closed_loop_vector_field,
+    diverged_from,
     get_solver,
     simulate,
 )
@@ -196,11 +195,28 @@ def _cast(tree, dtype):
     )
 
 
-def _union_jump_times(scenarios: Scenario, dtype) -> Array:
+def _per_case(fn, part, fixed, n):
+    """``fn(args)`` for every case, shape (n, ...); ``args`` = the case's batched leaves
+    (``part``) combined with the shared ones (``fixed``)."""
+    return jax.vmap(lambda p: fn(eqx.combine(p, fixed)), axis_size=n)(part)
+
+
+def _shared_or_per_case(fn, part, fixed, n):
+    """``fn(args)`` once if it does not depend on the batched leaves, else for every case
+    (leading axis n); the second element says which."""
+    try:
+        return jax.vmap(lambda p: fn(eqx.combine(p, fixed)), axis_size=n, out_axes=None)(
+            part), False
+    except ValueError:  # the result depends on batched leaves
+        return _per_case(fn, part, fixed, n), True
+
+
+def _union_jump_times(part, fixed, n, dtype) -> Array:
     # sorted, duplicates kept (a fixed shape per batch shape, so chunks never recompile);
-    # diffrax's ClipStepSizeController steps onto each distinct time once
-    jumps = jax.vmap(lambda s: s.jump_times())(scenarios).reshape(-1)
-    return jnp.sort(jumps).astype(dtype)
+    # diffrax's ClipStepSizeController steps onto each distinct time once. Shared jump times
+    # (every case the same) are taken once.
+    jumps, _ = _shared_or_per_case(lambda a: a.scenario.jump_times(), part, fixed, n)
+    return jnp.sort(jumps.reshape(-1)).astype(dtype)
 
 
 def _status_from(result, finite, diverged):
@@ -214,48 +230,52 @@ def _status_from(result, finite, diverged):
     return status.astype(jnp.int32)
 
 
-def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol, dtype,
-              max_steps, n_save) -> BatchMetrics:
-    n = scenarios.t0.shape[0]
-    args = _Args(controller, scenarios, vehicles, models, limits)
-    args = _cast(args, dtype)
-    in_axes = _Args(axes["controller"], 0, axes["vehicles"], axes["models"], None)
-    t0, t1 = args.scenario.t0[0], args.scenario.t1[0]
+def _ensemble(part: _Args, fixed: _Args, n, solver, rtol, atol, dtype, max_steps,
+              n_save) -> BatchMetrics:
+    """One ODE system for the n cases of ``part`` (batched leaves, leading axis n) sharing
+    ``fixed`` (leaves equal for every case, unbatched: computed once per evaluation)."""
+    t0 = _shared_or_per_case(lambda a: a.scenario.t0, part, fixed, n)[0].reshape(-1)[0]
+    t1 = _shared_or_per_case(lambda a: a.scenario.t1, part, fixed, n)[0].reshape(-1)[0]
 
-    def one_case(t, state, frozen_time, a):
-        dstate = closed_loop_vector_field(t, state, a)
-        frozen = _diverged(t, state, a) | (frozen_time > 0)
+    # ODE state: (ClosedLoopState with leaves (n, ...), frozen time (n,)); the divergence test
+    # reuses the vector field's own reference and error (one evaluation of each per stage)
+    def one_case(t, state, frozen_time, p, fx):
+        a = eqx.combine(p, fx)
+        signals, dstate = _signals_and_derivative(t, state, a)
+        frozen = diverged_from(state.plant, state.controller, signals.error[3], a.limits) | (
+            frozen_time > 0)
         dstate = jax.tree.map(lambda d: jnp.where(frozen, jnp.zeros_like(d), d), dstate)
         return dstate, jnp.where(frozen, jnp.ones_like(frozen_time), jnp.zeros_like(frozen_time))
 
-    def field(t, y, a):
-        state, frozen_time = y
-        return jax.vmap(one_case, in_axes=(None, 0, 0, in_axes))(t, state, frozen_time, a)
+    def field(t, y, args):
+        (state, frozen_time), (p, fx) = y, args
+        return jax.vmap(one_case, in_axes=(None, 0, 0, 0, None), axis_size=n)(
+            t, state, frozen_time, p, fx)
 
-    init_ctrl = jax.vmap(lambda c: c.init_state(), in_axes=(axes["controller"],),
-                         axis_size=n)(args.controller)
     y0 = (
         ClosedLoopState(
-            args.scenario.initial_state.astype(dtype),
-            init_ctrl.astype(dtype),
+            _per_case(lambda a: a.scenario.initial_state, part, fixed, n).astype(dtype),
+            _per_case(lambda a: a.controller.init_state(), part, fixed, n).astype(dtype),
             jnp.zeros((n, len(COST_LAYOUT)), dtype),
         ),
         jnp.zeros((n,), dtype),
     )
     stepsize = diffrax.ClipStepSizeController(
         diffrax.PIDController(rtol=rtol, atol=atol, norm=ensemble_rms_norm),
-        jump_ts=_union_jump_times(scenarios, dtype),
+        jump_ts=_union_jump_times(part, fixed, n, dtype),
     )
     subs = [diffrax.SubSaveAt(t1=True)]
     if n_save:
         ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
 
-        def one_sample(t, state, a):
+        def one_sample(t, state, p, fx):
+            a = eqx.combine(p, fx)
             sig = _signals_and_derivative(t, state, a)[0]
             return sample_peaks(sig.error, sig.u_command, a.vehicle, a.model)
 
-        def save_peaks(t, y, a):
-            return jax.vmap(one_sample, in_axes=(None, 0, in_axes))(t, y[0], a)
+        def save_peaks(t, y, args):
+            return jax.vmap(one_sample, in_axes=(None, 0, 0, None), axis_size=n)(
+                t, y[0], *args)
 
         subs.append(diffrax.SubSaveAt(ts=ts, fn=save_peaks))
     sol = diffrax.diffeqsolve(
@@ -265,7 +285,7 @@ def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rto
         t1,
         None,
         y0,
-        args=args,
+        args=(part, fixed),
         saveat=diffrax.SaveAt(subs=subs),
         stepsize_controller=stepsize,
         max_steps=max_steps,
@@ -296,39 +316,31 @@ def _ensemble(controller, scenarios, vehicles, models, limits, axes, solver, rto
     )
 
 
-def _vmap(controller, scenarios, vehicles, models, limits, axes, solver, rtol, atol, dtype,
-          max_steps, n_save) -> BatchMetrics:
-    def one(c, s, v, m):
-        r = simulate(c, s, v, m, solver=solver, rtol=rtol, atol=atol, n_save=n_save,
-                     max_steps=max_steps, limits=limits)
+def _vmap(part: _Args, fixed: _Args, n, solver, rtol, atol, dtype, max_steps,
+          n_save) -> BatchMetrics:
+    del dtype  # simulate runs in the default float dtype
+
+    def one(a):
+        r = simulate(a.controller, a.scenario, a.vehicle, a.model, solver=solver, rtol=rtol,
+                     atol=atol, n_save=n_save, max_steps=max_steps, limits=a.limits)
         if n_save:
-            samples = jax.vmap(lambda e, u: sample_peaks(e, u, v, m))(r.error, r.u_command)
+            samples = jax.vmap(lambda e, u: sample_peaks(e, u, a.vehicle, a.model))(
+                r.error, r.u_command)
             peaks = peaks_over_samples(r.ts, samples, r.t_final)
         else:
             peaks = jnp.full((3,), jnp.nan, r.t_final.dtype)
         return BatchMetrics(r.ise_attitude, r.ise_altitude, r.effort, r.saturation, r.status,
                             r.t_final, r.num_steps, r.num_rejected_steps, *peaks)
 
-    return jax.vmap(one, in_axes=(axes["controller"], 0, axes["vehicles"], axes["models"]))(
-        controller, scenarios, vehicles, models)
+    return _per_case(one, part, fixed, n)
 
 
-def _grouped_ensemble(group_size, controller, scenarios, vehicles, models, limits, axes, *rest):
-    n = scenarios.t0.shape[0]
+def _grouped_ensemble(group_size, part, fixed, n, *rest):
     if group_size is None or group_size >= n:
-        return _ensemble(controller, scenarios, vehicles, models, limits, axes, *rest)
+        return _ensemble(part, fixed, n, *rest)
     groups = n // group_size
-
-    def split(x):
-        return x.reshape(groups, group_size, *x.shape[1:])
-
-    g_axes = {k: (0 if v == 0 else None) for k, v in axes.items()}
-    out = jax.vmap(
-        lambda c, s, v, m: _ensemble(c, s, v, m, limits, axes, *rest),
-        in_axes=(g_axes["controller"], 0, g_axes["vehicles"], g_axes["models"]),
-    )(*(jax.tree.map(split, t) if g_axes.get(k, 0) == 0 else t for k, t in
-        (("controller", controller), ("scenarios", scenarios), ("vehicles", vehicles),
-         ("models", models))))
+    split = jax.tree.map(lambda x: x.reshape(groups, group_size, *x.shape[1:]), part)
+    out = jax.vmap(lambda p: _ensemble(p, fixed, group_size, *rest), axis_size=groups)(split)
     return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
 
 
@@ -339,11 +351,11 @@ def _pad_cases(x, n_pad):
 
 
 @eqx.filter_jit
-def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, solver, rtol,
-         atol, dtype, max_steps, chunk_size, group_size, n_save, devices) -> BatchMetrics:
+def _run(part: _Args, fixed: _Args, n, strategy, solver, rtol, atol, dtype, max_steps,
+         chunk_size, group_size, n_save, devices) -> BatchMetrics:
+    """``part``: the leaves that differ between cases (leading axis n); ``fixed``: the leaves
+    shared by every case (unbatched), so per-evaluation work on them is done once."""
     _TRACES["count"] += 1
-    axes = dict(axes_items)
-    n = scenarios.t0.shape[0]
     n_dev = len(devices)
     # layout: case i goes to device i // per_dev (consecutive blocks, so groups of consecutive
     # cases are the same with any device count when per_dev is a multiple of group_size); each
@@ -367,30 +379,24 @@ def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, 
         return x.reshape(n_dev, local_n, *x.shape[1:])[:, :per_dev].reshape(
             n_dev * per_dev, *x.shape[1:])[:n]
 
-    batched = {"scenarios": scenarios, **{k: t for k, t in (
-        ("controller", controller), ("vehicles", vehicles), ("models", models)) if axes[k] == 0}}
-    fixed = {k: t for k, t in (("controller", controller), ("vehicles", vehicles),
-                               ("models", models)) if axes[k] != 0}
-    batched = jax.tree.map(layout, batched)
-
-    def solve(part, fixed):
-        b = {**fixed, **part}
-        args = (b["controller"], b["scenarios"], b["vehicles"], b["models"], limits, axes, solver,
-                rtol, atol, np.dtype(dtype), max_steps, n_save)
+    def solve(p, fx):
+        args = (p, fx, chunk, solver, rtol, atol, np.dtype(dtype), max_steps, n_save)
         if strategy == "ensemble":
             return _grouped_ensemble(group_size, *args)
         return _vmap(*args)
 
-    def local(part, fixed):
+    def local(p, fx):
         # this device's cases, as consecutive chunks inside the one compiled program
         if n_chunks == 1:
-            return solve(part, fixed)
-        split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), part)
-        out = jax.lax.map(lambda p: solve(p, fixed), split)
+            return solve(p, fx)
+        split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), p)
+        out = jax.lax.map(lambda q: solve(q, fx), split) if jax.tree.leaves(split) else \
+            jax.vmap(lambda _: solve(p, fx))(jnp.arange(n_chunks))
         return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
 
+    part = jax.tree.map(layout, part)
     if n_dev == 1:
-        out = local(batched, fixed)
+        out = local(part, fixed)
     else:
         from jax.sharding import Mesh, PartitionSpec
 
@@ -398,8 +404,32 @@ def _run(controller, scenarios, vehicles, models, limits, axes_items, strategy, 
         # each device solves its own cases: no collective inside the solve (check_vma=False:
         # diffrax's while-loop carries start unvarying and become device-varying)
         out = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec("cases"), PartitionSpec()),
-                            out_specs=PartitionSpec("cases"), check_vma=False)(batched, fixed)
+                            out_specs=PartitionSpec("cases"), check_vma=False)(part, fixed)
     return jax.tree.map(unlayout, out)
+
+
+def _partition_cases(args: _Args, axes: dict, n: int) -> tuple[_Args, _Args]:
+    """Split the inputs into leaves that differ between cases (leading axis n) and leaves that
+    are the same for every case (their first row, unbatched). Equality is checked on concrete
+    values; traced leaves of a batched input count as differing."""
+    def batched(x):
+        c = concrete(x)
+        if c is None or np.ndim(c) == 0:
+            return True
+        return not np.array_equal(c, np.broadcast_to(c[:1], c.shape), equal_nan=True)
+
+    specs = _Args(*(jax.tree.map(batched if axes[name] == 0 else (lambda _: False), tree)
+                    for name, tree in (("controller", args.controller),
+                                       ("scenarios", args.scenario),
+                                       ("vehicles", args.vehicle), ("models", args.model))),
+                  jax.tree.map(lambda _: False, args.limits))
+    part, fixed = eqx.partition(args, specs)
+    firsts = _Args(*(jax.tree.map(lambda x: x[0], t) if axes[name] == 0 else t
+                     for name, t in (("controller", fixed.controller),
+                                     ("scenarios", fixed.scenario),
+                                     ("vehicles", fixed.vehicle), ("models", fixed.model))),
+                   fixed.limits)
+    return part, firsts
 
 
 def simulate_batch(
@@ -437,7 +467,7 @@ def simulate_batch(
         chunk_size: solve the batch as consecutive chunks of this many cases inside the one
             compiled call (``jax.lax.map``); with ``"ensemble"`` each chunk has its own shared
             step sequence. Smaller chunks keep the working set in cache (the benchmark's
-            ``ensemble_chunked`` rows). None (default): one chunk per device.
+            ``ensemble_f32_chunked`` rows). None (default): one chunk per device.
         group_size: ``"ensemble"`` only: groups of this many cases are separate ensembles (own
             step sequences), vectorised with ``jax.vmap``; for cases with different jump times
             (module docstring). None (default): the whole chunk is one ensemble.
@@ -480,7 +510,9 @@ def simulate_batch(
             if v is not None and not np.all(v == v.reshape(-1)[0]):
                 raise ValueError(f"simulate_batch: strategy 'ensemble' needs one {name} for all "
                                  f"cases, got values from {v.min()} to {v.max()} [s].")
-    return _run(controller, scenarios, vehicles, models, limits, tuple(sorted(axes.items())),
-                strategy, get_solver(solver), float(rtol), float(atol), dtype.name,
-                int(max_steps), None if chunk_size is None else int(chunk_size),
+    n = int(np.shape(scenarios.t0)[0])
+    args = _cast(_Args(controller, scenarios, vehicles, models, limits), dtype)
+    part, fixed = _partition_cases(args, {**axes, "scenarios": 0}, n)
+    return _run(part, fixed, n, strategy, get_solver(solver), float(rtol), float(atol),
+                dtype.name, int(max_steps), None if chunk_size is None else int(chunk_size),
                 None if group_size is None else int(group_size), int(n_save), devices)

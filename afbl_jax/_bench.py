@@ -16,9 +16,17 @@ Strategies (rows of bench.json):
 - ``vmap``, ``ensemble``: `simulate_batch` strategies, float64.
 - ``ensemble_f32``: the ensemble in float32 at rtol 1e-5, atol 1e-6 (float32 cannot resolve
   1e-8 absolute / 1e-6 relative steps reliably; the measured error is in the row).
-- ``ensemble_chunked``, ``ensemble_f32_chunked``: the same, solved as consecutive chunks of
-  1024 cases inside one compiled call (``simulate_batch(chunk_size=1024)``): the per-step
-  working set then stays in cache (rows with N <= 1024 are the unchunked ensemble).
+- ``ensemble_f32_chunked``: the same, each device solving its cases as consecutive chunks of
+  128 inside one compiled call (``simulate_batch(chunk_size=128)``): the per-step working set
+  then stays in cache (rows with N <= 128 per device are the unchunked ensemble).
+- ``montecarlo_default``: exactly what ``afbl montecarlo`` runs by default per chunk (strategy
+  ``ensemble_f32``: float32, groups of 4 cases, 128 cases per device at a time, 401 saved
+  samples for the peak metrics, rtol 1e-5, atol 1e-6); ``montecarlo_default_1dev``: the same on
+  one device (one core), for a per-core comparison with the single-core scipy loop.
+
+Every batched row splits the cases over all local devices (``devices`` in the row) except
+``montecarlo_default_1dev``; ``afbl bench`` starts with one XLA CPU device per core
+(`afbl_jax.configure_cpu_devices`).
 
 Memory: ``peak_rss_delta_mb`` is the growth of the process's peak resident set size
 (``resource.getrusage`` max RSS, which includes compilation) during the row; it is 0 when the
@@ -47,14 +55,33 @@ from ._simulate import STATUS_OK, simulate
 from .controllers import AFBL
 
 DEFAULT_SIZES = (64, 1024, 4096, 16384)
-CHUNK = 1024
+CHUNK = 128
+
+
+def _mc_default(one_device: bool) -> dict:
+    from .montecarlo._runner import (
+        DEFAULT_STRATEGY,
+        GROUP_SIZE,
+        INNER_CHUNK,
+        STRATEGY_TOLERANCES,
+        SolverSettings,
+    )
+
+    rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
+    return {"strategy": "ensemble", "dtype": "float32", "rtol": rtol, "atol": atol,
+            "chunk_size": INNER_CHUNK, "group_size": GROUP_SIZE,
+            "n_save": SolverSettings().n_save, "one_device": one_device, "always": True}
+
+
 BATCH_STRATEGIES = {
-    # name: (simulate_batch strategy, dtype, rtol, atol, chunk_size)
-    "vmap": ("vmap", "float64", 1e-6, 1e-8, None),
-    "ensemble": ("ensemble", "float64", 1e-6, 1e-8, None),
-    "ensemble_f32": ("ensemble", "float32", 1e-5, 1e-6, None),
-    "ensemble_chunked": ("ensemble", "float64", 1e-6, 1e-8, CHUNK),
-    "ensemble_f32_chunked": ("ensemble", "float32", 1e-5, 1e-6, CHUNK),
+    # name: simulate_batch settings ("always": measure even when chunking changes nothing)
+    "vmap": {"strategy": "vmap", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
+    "ensemble": {"strategy": "ensemble", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
+    "ensemble_f32": {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5, "atol": 1e-6},
+    "ensemble_f32_chunked": {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5,
+                             "atol": 1e-6, "chunk_size": CHUNK},
+    "montecarlo_default": _mc_default(False),
+    "montecarlo_default_1dev": _mc_default(True),
 }
 LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
 ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES)
@@ -219,14 +246,16 @@ def reference_ise(scenarios: Scenario, chunk: int = 4096) -> np.ndarray:
 
 def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     """One row: run twice (compile + run, then run), time the second call."""
-    strategy, dtype, rtol, atol, chunk = BATCH_STRATEGIES[name]
+    cfg = BATCH_STRATEGIES[name]
     n = scenarios.t0.shape[0]
+    devices = jax.local_devices()[:1] if cfg.get("one_device") else jax.local_devices()
     rss0 = _rss_mb()
 
     def call():
-        return jax.block_until_ready(simulate_batch(AFBL(), scenarios, strategy=strategy,
-                                                    rtol=rtol, atol=atol, dtype=dtype,
-                                                    chunk_size=chunk))
+        return jax.block_until_ready(simulate_batch(
+            AFBL(), scenarios, strategy=cfg["strategy"], rtol=cfg["rtol"], atol=cfg["atol"],
+            dtype=cfg["dtype"], chunk_size=cfg.get("chunk_size"),
+            group_size=cfg.get("group_size"), n_save=cfg.get("n_save", 0), devices=devices))
 
     t = time.perf_counter()
     call()
@@ -237,8 +266,10 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     k = min(n, len(ref))  # accuracy over the first k cases (those with a reference)
     ok = np.asarray(m.status)[:k] == STATUS_OK
     return {
-        "strategy": name, "N": n, "dtype": dtype, "rtol": rtol, "atol": atol,
-        "chunk_size": chunk, "sims_per_s": n / run, "seconds": run,
+        "strategy": name, "N": n, "dtype": cfg["dtype"], "rtol": cfg["rtol"],
+        "atol": cfg["atol"], "chunk_size": cfg.get("chunk_size"),
+        "group_size": cfg.get("group_size"), "n_save": cfg.get("n_save", 0),
+        "devices": len(devices), "sims_per_s": n / run, "seconds": run,
         "compile_s": max(first - run, 0.0),
         "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
         "max_rel_ise_error": _rel_error(_ise(m)[:k], ref[:k], ok), "error_cases": k,
@@ -268,7 +299,7 @@ def measure_diffrax_loop(scenarios: Scenario, ref: np.ndarray) -> dict:
         "sims_per_s": n / run, "seconds": run, "compile_s": max(first - run / n, 0.0),
         "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
         "max_rel_ise_error": _rel_error(ise, ref, ok), "n_ok": int(ok.sum()),
-        "num_steps_max": int(max(int(r.num_steps) for r in results)),
+        "num_steps_max": int(max(int(r.num_steps) for r in results)), "devices": 1,
     }
 
 
@@ -283,7 +314,7 @@ def measure_scipy(draws: np.ndarray, ref: np.ndarray) -> dict:
         "atol": 1e-8, "sims_per_s": len(draws) / run, "seconds": run, "compile_s": 0.0,
         "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
         "max_rel_ise_error": _rel_error(ise, ref, ok), "n_ok": int(ok.sum()),
-        "num_steps_max": None,
+        "num_steps_max": None, "devices": 1,
     }
 
 
@@ -326,9 +357,10 @@ def run_benchmark(
         rows.append(measure_diffrax_loop(_index(scenarios, slice(0, loop_cases)),
                                          ref[:loop_cases]))
     for n in sorted(int(s) for s in sizes):
-        for name in BATCH_STRATEGIES:
-            chunk = BATCH_STRATEGIES[name][4]
-            if chunk is not None and n <= chunk:
+        for name, cfg in BATCH_STRATEGIES.items():
+            chunk = cfg.get("chunk_size")
+            if chunk is not None and not cfg.get("always") and n <= chunk * len(
+                    jax.local_devices()):
                 continue  # identical to the unchunked row
             if name in strategies:
                 log(f"{name} N={n} ...")
@@ -381,12 +413,13 @@ def plot_benchmark(rows: list[dict], path: Path) -> Path:
 
 
 def format_rows(rows: list[dict]) -> str:
-    head = f"{'strategy':<17}{'N':>7}{'dtype':>9}{'sims/s':>11}{'x scipy':>9}{'compile s':>11}" \
-           f"{'rss MB':>8}{'max rel err':>13}"
+    head = f"{'strategy':<24}{'N':>7}{'dev':>4}{'dtype':>9}{'sims/s':>11}{'x scipy':>9}" \
+           f"{'compile s':>11}{'rss MB':>8}{'max rel err':>13}"
     lines = [head]
     for r in rows:
         ratio = "-" if r["ratio_to_scipy"] is None else f"{r['ratio_to_scipy']:.1f}"
-        lines.append(f"{r['strategy']:<17}{r['N']:>7}{r['dtype']:>9}{r['sims_per_s']:>11.1f}"
+        lines.append(f"{r['strategy']:<24}{r['N']:>7}{r['devices']:>4}{r['dtype']:>9}"
+                     f"{r['sims_per_s']:>11.1f}"
                      f"{ratio:>9}{r['compile_s']:>11.1f}{r['peak_rss_delta_mb']:>8.0f}"
                      f"{r['max_rel_ise_error']:>13.2e}")
     return "\n".join(lines)

@@ -136,13 +136,18 @@ def closed_loop_vector_field(t, y: ClosedLoopState, args: _Args) -> ClosedLoopSt
     return _signals_and_derivative(t, y, args)[1]
 
 
+def diverged_from(plant, controller_state, altitude_error, limits: DivergenceLimits):
+    """True past the `DivergenceLimits` (|phi| or |theta|, |altitude error|) or when the plant
+    or controller state is not finite."""
+    att = jnp.maximum(jnp.abs(plant[3]), jnp.abs(plant[4]))
+    finite = jnp.all(jnp.isfinite(plant)) & jnp.all(jnp.isfinite(controller_state))
+    return (att > limits.attitude) | (jnp.abs(altitude_error) > limits.altitude_error) | ~finite
+
+
 def _diverged(t, y: ClosedLoopState, args: _Args, **kwargs):
     del kwargs
     ref = args.scenario.reference(t)
-    att = jnp.maximum(jnp.abs(y.plant[3]), jnp.abs(y.plant[4]))
-    alt_err = jnp.abs(ref.r[3] - y.plant[2])
-    finite = jnp.all(jnp.isfinite(y.plant)) & jnp.all(jnp.isfinite(y.controller))
-    return (att > args.limits.attitude) | (alt_err > args.limits.altitude_error) | ~finite
+    return diverged_from(y.plant, y.controller, ref.r[3] - y.plant[2], args.limits)
 
 
 class SimulationResult(eqx.Module):

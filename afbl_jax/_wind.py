@@ -59,28 +59,58 @@ def _as_float(x) -> Array:
 class Wind(eqx.Module):
     """Wind field of one case (see the module docstring for the model).
 
+    Construct with ``Wind(gust_start, gust_buildup, gust_amplitude, turbulence_amplitude,
+    turbulence_frequency, turbulence_phase)``. The turbulence is stored in quadrature form,
+    a_jk cos(omega_k t + phase_jk) = C_jk cos(omega_k t) + S_jk sin(omega_k t) with
+    C = a cos(phase), S = -a sin(phase): evaluating it needs cos/sin of omega_k t only, which
+    a batch whose cases share the frequencies (Monte-Carlo cases) computes once for all cases.
+
     Attributes:
         gust_start: gust start times, shape (G,) [s].
         gust_buildup: build-up times per axis, shape (G, 3) [s], > 0.
         gust_amplitude: amplitudes per axis (x, y, z), shape (G, 3) [m/s].
-        turbulence_amplitude: sinusoid amplitudes a_jk, shape (3, K) [m/s].
         turbulence_frequency: sinusoid frequencies omega_k, shape (K,) [rad/s].
-        turbulence_phase: phases, shape (3, K) [rad].
+        turbulence_cos, turbulence_sin: C_jk, S_jk, shape (3, K) [m/s].
+        turbulence_amplitude, turbulence_phase (properties): a_jk [m/s], phase_jk [rad].
     """
 
-    gust_start: Float[Array, " G"] = eqx.field(converter=_as_float)
-    gust_buildup: Float[Array, "G 3"] = eqx.field(converter=_as_float)
-    gust_amplitude: Float[Array, "G 3"] = eqx.field(converter=_as_float)
-    turbulence_amplitude: Float[Array, "3 K"] = eqx.field(converter=_as_float)
-    turbulence_frequency: Float[Array, " K"] = eqx.field(converter=_as_float)
-    turbulence_phase: Float[Array, "3 K"] = eqx.field(converter=_as_float)
+    gust_start: Float[Array, " G"]
+    gust_buildup: Float[Array, "G 3"]
+    gust_amplitude: Float[Array, "G 3"]
+    turbulence_frequency: Float[Array, " K"]
+    turbulence_cos: Float[Array, "3 K"]
+    turbulence_sin: Float[Array, "3 K"]
+
+    def __init__(self, gust_start, gust_buildup, gust_amplitude, turbulence_amplitude,
+                 turbulence_frequency, turbulence_phase):
+        self.gust_start = _as_float(gust_start)
+        self.gust_buildup = _as_float(gust_buildup)
+        self.gust_amplitude = _as_float(gust_amplitude)
+        self.turbulence_frequency = _as_float(turbulence_frequency)
+        amp, phase = _as_float(turbulence_amplitude), _as_float(turbulence_phase)
+        owner = type(self).__name__
+        if np.shape(amp) != np.shape(phase):
+            raise ValueError(f"{owner}: turbulence_amplitude and turbulence_phase must have one "
+                             f"shape (3, K), got {np.shape(amp)} and {np.shape(phase)}.")
+        check_finite(owner, "turbulence_amplitude", amp)
+        check_finite(owner, "turbulence_phase", phase)
+        self.turbulence_cos = amp * jnp.cos(phase)
+        self.turbulence_sin = -amp * jnp.sin(phase)
+
+    @property
+    def turbulence_amplitude(self) -> Array:
+        return jnp.hypot(self.turbulence_cos, self.turbulence_sin)
+
+    @property
+    def turbulence_phase(self) -> Array:
+        return jnp.arctan2(-self.turbulence_sin, self.turbulence_cos)
 
     def __check_init__(self):
         owner = type(self).__name__
         g = np.shape(self.gust_start)
         k = np.shape(self.turbulence_frequency)
         shapes = (np.shape(self.gust_buildup), np.shape(self.gust_amplitude),
-                  np.shape(self.turbulence_amplitude), np.shape(self.turbulence_phase))
+                  np.shape(self.turbulence_cos), np.shape(self.turbulence_sin))
         if len(g) < 1 or len(k) < 1 or shapes != ((*g, 3), (*g, 3), (*k[:-1], 3, k[-1]),
                                                   (*k[:-1], 3, k[-1])):
             raise ValueError(
@@ -88,8 +118,7 @@ class Wind(eqx.Module):
                 f"turbulence_frequency (K,), turbulence_amplitude (3, K), turbulence_phase "
                 f"(3, K); got {g}, {shapes[0]}, {shapes[1]}, {k}, {shapes[2]}, {shapes[3]}."
             )
-        for name in ("gust_start", "gust_amplitude", "turbulence_amplitude", "turbulence_phase",
-                     "turbulence_frequency"):
+        for name in ("gust_start", "gust_amplitude", "turbulence_frequency"):
             check_finite(owner, name, getattr(self, name))
         check_positive(owner, "gust_buildup", self.gust_buildup)
         check_nonnegative(owner, "turbulence_frequency", self.turbulence_frequency)
@@ -99,8 +128,9 @@ class Wind(eqx.Module):
         tau = (t - self.gust_start[..., None]) / self.gust_buildup
         shape = 0.5 * (1.0 - jnp.cos(jnp.pi * jnp.clip(tau, 0.0, 1.0)))
         gust = jnp.sum(self.gust_amplitude * shape, axis=-2)
-        arg = self.turbulence_frequency[..., None, :] * t + self.turbulence_phase
-        turb = jnp.sum(self.turbulence_amplitude * jnp.cos(arg), axis=-1)
+        arg = self.turbulence_frequency * t
+        turb = (jnp.einsum("...jk,...k->...j", self.turbulence_cos, jnp.cos(arg))
+                + jnp.einsum("...jk,...k->...j", self.turbulence_sin, jnp.sin(arg)))
         return gust + turb
 
     def jump_times(self) -> Array:

@@ -15,7 +15,7 @@ from afbl_jax import montecarlo as mc
 T1 = 3.0
 CHUNK = 3
 SEED = 5
-SETTINGS = mc.SolverSettings(n_save=31, max_steps=4096)
+SETTINGS = mc.SolverSettings(n_save=31, max_steps=4096).with_tolerances_for("vmap")
 QUIET = {  # no pulses / gust / turbulence: only the unmodeled dynamics and the initial state
     "time": {"t1": T1},
     "pulses": {"enabled": False, "start": [0.5, 2.0]},

@@ -266,7 +266,7 @@ def replay_worst(cols, controllers: dict, distribution, seed: int, k: int = 5,
     from ._runner import SolverSettings
     from ._sampler import sample_cases
 
-    settings = settings or SolverSettings()
+    settings = (settings or SolverSettings()).with_tolerances_for("vmap")
     out = {}
     for case in worst_cases(cols, k):
         batch = sample_cases(distribution, 1, seed, start=case)

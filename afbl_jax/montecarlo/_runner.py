@@ -226,10 +226,13 @@ def shard_chunk(chunk: CaseBatch, devices=None) -> CaseBatch:
 
 
 def run_chunk(controller: AbstractController, chunk: CaseBatch, *,
-              strategy: str = DEFAULT_STRATEGY, settings: SolverSettings | None = None,
+              strategy: str | None = None, settings: SolverSettings | None = None,
               shard: bool = False) -> dict[str, np.ndarray]:
-    """Metrics of every case of ``chunk`` for ``controller`` as NumPy arrays; ``shard``: split
-    the case axis over all local devices (else the default device only)."""
+    """Metrics of every case of ``chunk`` for ``controller`` as NumPy arrays; ``strategy``
+    None/"auto": `DEFAULT_STRATEGY`, or "vmap" for a chunk with unmodeled dynamics;
+    ``shard``: split the case axis over all local devices (else the default device only)."""
+    if strategy in (None, "auto"):
+        strategy = "vmap" if chunk.unmodeled is not None else DEFAULT_STRATEGY
     settings = (settings or SolverSettings()).with_tolerances_for(strategy)
     try:
         fn = STRATEGIES[strategy]

@@ -16,6 +16,7 @@ import numpy as np
 
 from .._disturbances import PulseDisturbance
 from .._params import QuadrotorParams
+from .._references import Reference
 from .._scenarios import Scenario, paper_reference
 from .._typing import Array
 from .._unmodeled import UnmodeledDynamics
@@ -273,6 +274,37 @@ def _unmodeled_sampler(distribution: Distribution):
     return jax.jit(jax.vmap(one))
 
 
+def shared_slot_references(references: list[Reference]) -> list[Reference]:
+    """The same signals with the timing of unused slots aligned across the references.
+
+    A zero-size step slot takes the start and duration of the same slot of another reference
+    where it is used, and a zero-amplitude sinusoid takes the other's frequency and phase; the
+    signals (r, rd, rdd) are unchanged. Cases drawn from these references then share every
+    timing leaf, which `afbl_jax.simulate_batch` evaluates once for all cases instead of per
+    case (the blends are most of the vector field's cost otherwise). The unused slots add their
+    (harmless) kink times to the jump times.
+    """
+    ref = [jax.tree.map(np.asarray, r) for r in references]
+    start = np.array(ref[0].step_start, dtype=float)
+    duration = np.array(ref[0].step_duration, dtype=float)
+    freq = np.array(ref[0].sine_frequency, dtype=float)
+    phase = np.array(ref[0].sine_phase, dtype=float)
+    for r in ref[1:]:
+        used, free = r.step_size != 0, ref[0].step_size == 0
+        take = used & free
+        start[take], duration[take] = r.step_start[take], r.step_duration[take]
+        take = (r.sine_amplitude != 0) & (ref[0].sine_amplitude == 0)
+        freq[take], phase[take] = r.sine_frequency[take], r.sine_phase[take]
+    out = []
+    for r in ref:
+        slot_free, sine_free = r.step_size == 0, r.sine_amplitude == 0
+        out.append(Reference(
+            r.offset, np.where(slot_free, start, r.step_start),
+            r.step_size, np.where(slot_free, duration, r.step_duration), r.sine_amplitude,
+            np.where(sine_free, freq, r.sine_frequency), np.where(sine_free, phase, r.sine_phase)))
+    return out
+
+
 @functools.lru_cache(maxsize=8)
 def _batch_sampler(distribution: Distribution):
     """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
@@ -283,5 +315,5 @@ def _batch_sampler(distribution: Distribution):
         dryden_amplitudes(name, turb["altitude"], turb["airspeed"], omega, domega)
         for name in TURBULENCE_INTENSITIES
     ])
-    references = [paper_reference(p) for p in PROFILE_NAMES]
+    references = shared_slot_references([paper_reference(p) for p in PROFILE_NAMES])
     return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, amp_table, omega, references)))
