@@ -8,9 +8,13 @@ maps ``(controller, chunk, settings, devices) -> per-case metrics`` (`METRIC_NAM
 - ``"ensemble_f32"`` (the default; `DEFAULT_STRATEGY`): float32, groups of `GROUP_SIZE`
   consecutive cases each solved as one ODE system (shared steps, every case meeting its own
   tolerance), the groups vectorised, each device working through its cases `INNER_CHUNK` at a
-  time; default tolerances rtol 1e-5, atol 1e-6 (float32 cannot honour 1e-6 / 1e-8). The
+  time; default tolerances rtol 3e-6, atol 3e-7 (float32 cannot honour 1e-6 / 1e-8). The
   fastest path that meets the accuracy bound (max relative ISE error <= 1e-3 against a tight
-  float64 reference; measured by `afbl bench` and checked by the tests).
+  float64 reference; measured by `afbl bench` and checked by the tests). At rtol 1e-5,
+  atol 1e-6 (the benchmark's ``ensemble_f32`` rows, 1.2-1.4x faster) 3 of 8190 runs of the
+  default 4096-case study missed the bound (up to 1.5e-3, FBL cases driving the rotors into
+  their limit, where the clipping kinks meet float32 round-off); at 3e-6 / 3e-7 none did
+  (max 6.7e-4).
 - ``"ensemble"``: the same in float64 (default tolerances rtol 1e-6, atol 1e-8).
 - ``"vmap"``: ``jax.vmap`` over `afbl_jax.simulate` in float64 (every case its own step
   sequence; results independent of how cases are chunked); the only strategy that simulates
@@ -74,7 +78,7 @@ GROUP_SIZE = 4
 solver work per case than single cases)."""
 INNER_CHUNK = 128
 """Cases per device solved at a time inside one compiled call (keeps the working set in cache)."""
-STRATEGY_TOLERANCES = {"ensemble_f32": (1e-5, 1e-6), "ensemble": (1e-6, 1e-8),
+STRATEGY_TOLERANCES = {"ensemble_f32": (3e-6, 3e-7), "ensemble": (1e-6, 1e-8),
                        "vmap": (1e-6, 1e-8)}
 """Default (rtol, atol) per strategy (used when `SolverSettings` leaves them None)."""
 

@@ -121,9 +121,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "one step sequence per case; needed for [unmodeled]); auto (default): "
                    "ensemble_f32, or vmap when the distribution enables [unmodeled]")
     p.add_argument("--rtol", type=float, default=None,
-                   help="relative tolerance (default: 1e-5 for ensemble_f32, else 1e-6)")
+                   help="relative tolerance (default: 3e-6 for ensemble_f32, else 1e-6)")
     p.add_argument("--atol", type=float, default=None,
-                   help="absolute tolerance (default: 1e-6 for ensemble_f32, else 1e-8)")
+                   help="absolute tolerance (default: 3e-7 for ensemble_f32, else 1e-8)")
     p.add_argument("--no-report", action="store_true", help="skip report.md/html and figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     hosts = p.add_argument_group(
