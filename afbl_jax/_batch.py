@@ -66,6 +66,7 @@ import numpy as np
 
 from ._mixer import rotor_speeds_sq_from_inputs
 from ._params import QuadrotorParams
+from ._plant import diverged_from
 from ._scenarios import Scenario
 from ._simulate import (
     COST_LAYOUT,
@@ -77,7 +78,6 @@ from ._simulate import (
     DivergenceLimits,
     _Args,
     _signals_and_derivative,
-    diverged_from,
     get_solver,
     simulate,
 )
@@ -170,7 +170,7 @@ def _batch_sizes(controller, scenarios, vehicles, models):
             "simulate_batch: scenarios must be batched (leading axis = cases; use "
             "stack_scenarios), got an unbatched Scenario."
         )
-    axes = {}
+    axes = {"scenarios": 0}
     for name, tree, probe, base_ndim in (
         ("vehicles", vehicles, lambda p: p.m, 0),
         ("models", models, lambda p: p.m, 0),
@@ -202,20 +202,19 @@ def _per_case(fn, part, fixed, n):
 
 
 def _shared_or_per_case(fn, part, fixed, n):
-    """``fn(args)`` once if it does not depend on the batched leaves, else for every case
-    (leading axis n); the second element says which."""
+    """``fn(args)`` once (unbatched) if it does not depend on the batched leaves, else for
+    every case (leading axis n)."""
     try:
-        return jax.vmap(lambda p: fn(eqx.combine(p, fixed)), axis_size=n, out_axes=None)(
-            part), False
+        return jax.vmap(lambda p: fn(eqx.combine(p, fixed)), axis_size=n, out_axes=None)(part)
     except ValueError:  # the result depends on batched leaves
-        return _per_case(fn, part, fixed, n), True
+        return _per_case(fn, part, fixed, n)
 
 
 def _union_jump_times(part, fixed, n, dtype) -> Array:
     # sorted, duplicates kept (a fixed shape per batch shape, so chunks never recompile);
     # diffrax's ClipStepSizeController steps onto each distinct time once. Shared jump times
     # (every case the same) are taken once.
-    jumps, _ = _shared_or_per_case(lambda a: a.scenario.jump_times(), part, fixed, n)
+    jumps = _shared_or_per_case(lambda a: a.scenario.jump_times(), part, fixed, n)
     return jnp.sort(jumps.reshape(-1)).astype(dtype)
 
 
@@ -234,15 +233,15 @@ def _ensemble(part: _Args, fixed: _Args, n, solver, rtol, atol, dtype, max_steps
               n_save) -> BatchMetrics:
     """One ODE system for the n cases of ``part`` (batched leaves, leading axis n) sharing
     ``fixed`` (leaves equal for every case, unbatched: computed once per evaluation)."""
-    t0 = _shared_or_per_case(lambda a: a.scenario.t0, part, fixed, n)[0].reshape(-1)[0]
-    t1 = _shared_or_per_case(lambda a: a.scenario.t1, part, fixed, n)[0].reshape(-1)[0]
+    t0 = _shared_or_per_case(lambda a: a.scenario.t0, part, fixed, n).reshape(-1)[0]
+    t1 = _shared_or_per_case(lambda a: a.scenario.t1, part, fixed, n).reshape(-1)[0]
 
     # ODE state: (ClosedLoopState with leaves (n, ...), frozen time (n,)); the divergence test
     # reuses the vector field's own reference and error (one evaluation of each per stage)
     def one_case(t, state, frozen_time, p, fx):
         a = eqx.combine(p, fx)
         signals, dstate = _signals_and_derivative(t, state, a)
-        frozen = diverged_from(state.plant, state.controller, signals.error[3], a.limits) | (
+        frozen = diverged_from(state.plant, signals.error[3], a.limits, state.controller) | (
             frozen_time > 0)
         dstate = jax.tree.map(lambda d: jnp.where(frozen, jnp.zeros_like(d), d), dstate)
         return dstate, jnp.where(frozen, jnp.ones_like(frozen_time), jnp.zeros_like(frozen_time))
@@ -390,8 +389,9 @@ def _run(part: _Args, fixed: _Args, n, strategy, solver, rtol, atol, dtype, max_
         if n_chunks == 1:
             return solve(p, fx)
         split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), p)
-        out = jax.lax.map(lambda q: solve(q, fx), split) if jax.tree.leaves(split) else \
-            jax.vmap(lambda _: solve(p, fx))(jnp.arange(n_chunks))
+        # map over chunk indices (not over `split`, which is empty when every leaf is shared)
+        out = jax.lax.map(lambda i: solve(jax.tree.map(lambda x: x[i], split), fx),
+                          jnp.arange(n_chunks))
         return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
 
     part = jax.tree.map(layout, part)
@@ -408,8 +408,13 @@ def _run(part: _Args, fixed: _Args, n, strategy, solver, rtol, atol, dtype, max_
     return jax.tree.map(unlayout, out)
 
 
-def _partition_cases(args: _Args, axes: dict, n: int) -> tuple[_Args, _Args]:
-    """Split the inputs into leaves that differ between cases (leading axis n) and leaves that
+_TREES = (("controller", "controller"), ("scenarios", "scenario"), ("vehicles", "vehicle"),
+          ("models", "model"))
+"""(`simulate_batch` argument, `_Args` field) of the inputs that may carry the case axis."""
+
+
+def _partition_cases(args: _Args, axes: dict) -> tuple[_Args, _Args]:
+    """Split the inputs into leaves that differ between cases (leading axis = cases) and leaves that
     are the same for every case (their first row, unbatched). Equality is checked on concrete
     values; traced leaves of a batched input count as differing."""
     def batched(x):
@@ -418,18 +423,15 @@ def _partition_cases(args: _Args, axes: dict, n: int) -> tuple[_Args, _Args]:
             return True
         return not np.array_equal(c, np.broadcast_to(c[:1], c.shape), equal_nan=True)
 
-    specs = _Args(*(jax.tree.map(batched if axes[name] == 0 else (lambda _: False), tree)
-                    for name, tree in (("controller", args.controller),
-                                       ("scenarios", args.scenario),
-                                       ("vehicles", args.vehicle), ("models", args.model))),
-                  jax.tree.map(lambda _: False, args.limits))
+    specs = _Args(limits=False, **{
+        attr: jax.tree.map(batched, getattr(args, attr)) if axes[name] == 0 else False
+        for name, attr in _TREES})
     part, fixed = eqx.partition(args, specs)
-    firsts = _Args(*(jax.tree.map(lambda x: x[0], t) if axes[name] == 0 else t
-                     for name, t in (("controller", fixed.controller),
-                                     ("scenarios", fixed.scenario),
-                                     ("vehicles", fixed.vehicle), ("models", fixed.model))),
-                   fixed.limits)
-    return part, firsts
+    # the shared leaves of a batched input keep their first row
+    fixed = _Args(limits=fixed.limits, **{
+        attr: jax.tree.map(lambda x: x[0], getattr(fixed, attr)) if axes[name] == 0
+        else getattr(fixed, attr) for name, attr in _TREES})
+    return part, fixed
 
 
 def simulate_batch(
@@ -512,7 +514,7 @@ def simulate_batch(
                                  f"cases, got values from {v.min()} to {v.max()} [s].")
     n = int(np.shape(scenarios.t0)[0])
     args = _cast(_Args(controller, scenarios, vehicles, models, limits), dtype)
-    part, fixed = _partition_cases(args, {**axes, "scenarios": 0}, n)
+    part, fixed = _partition_cases(args, axes)
     return _run(part, fixed, n, strategy, get_solver(solver), float(rtol), float(atol),
                 dtype.name, int(max_steps), None if chunk_size is None else int(chunk_size),
                 None if group_size is None else int(group_size), int(n_save), devices)

@@ -60,16 +60,14 @@ CHUNK = 128
 
 def _mc_default(one_device: bool) -> dict:
     from .montecarlo._runner import (
+        BATCH_SETTINGS,
         DEFAULT_STRATEGY,
-        GROUP_SIZE,
-        INNER_CHUNK,
         STRATEGY_TOLERANCES,
         SolverSettings,
     )
 
     rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
-    return {"strategy": "ensemble", "dtype": "float32", "rtol": rtol, "atol": atol,
-            "chunk_size": INNER_CHUNK, "group_size": GROUP_SIZE,
+    return {**BATCH_SETTINGS[DEFAULT_STRATEGY], "rtol": rtol, "atol": atol,
             "n_save": SolverSettings().n_save, "one_device": one_device, "always": True}
 
 

@@ -131,3 +131,15 @@ def hover_input(params: QuadrotorParams, mass: Scalar | None = None) -> Vec4:
 def zero_state(dtype=None) -> Array:
     """A plant state at rest at the origin."""
     return jnp.zeros(STATE_SIZE, dtype=dtype or jnp.result_type(float))
+
+
+def diverged_from(plant: PlantState, altitude_error, limits, *states) -> Array:
+    """True past the divergence limits (``limits.attitude`` on |phi| and |theta| [rad],
+    ``limits.altitude_error`` on |altitude_error| [m]) or when ``plant`` or any of ``states``
+    (controller, rotor states) is not finite. Entries 2-4 of ``plant`` are z, phi, theta in
+    both plant layouts."""
+    att = jnp.maximum(jnp.abs(plant[3]), jnp.abs(plant[4]))
+    finite = jnp.all(jnp.isfinite(plant))
+    for x in states:
+        finite = finite & jnp.all(jnp.isfinite(x))
+    return (att > limits.attitude) | (jnp.abs(altitude_error) > limits.altitude_error) | ~finite

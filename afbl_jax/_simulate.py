@@ -37,7 +37,7 @@ from ._mixer import (
     saturate_rotor_speeds_sq,
 )
 from ._params import QuadrotorParams
-from ._plant import CHANNEL_INDEX, hover_input, plant_derivative
+from ._plant import CHANNEL_INDEX, diverged_from, hover_input, plant_derivative
 from ._scenarios import Scenario
 from ._typing import Array, Float, Int, Scalar
 from ._unmodeled import UnmodeledDynamics, simulate_unmodeled
@@ -136,18 +136,10 @@ def closed_loop_vector_field(t, y: ClosedLoopState, args: _Args) -> ClosedLoopSt
     return _signals_and_derivative(t, y, args)[1]
 
 
-def diverged_from(plant, controller_state, altitude_error, limits: DivergenceLimits):
-    """True past the `DivergenceLimits` (|phi| or |theta|, |altitude error|) or when the plant
-    or controller state is not finite."""
-    att = jnp.maximum(jnp.abs(plant[3]), jnp.abs(plant[4]))
-    finite = jnp.all(jnp.isfinite(plant)) & jnp.all(jnp.isfinite(controller_state))
-    return (att > limits.attitude) | (jnp.abs(altitude_error) > limits.altitude_error) | ~finite
-
-
 def _diverged(t, y: ClosedLoopState, args: _Args, **kwargs):
     del kwargs
     ref = args.scenario.reference(t)
-    return diverged_from(y.plant, y.controller, ref.r[3] - y.plant[2], args.limits)
+    return diverged_from(y.plant, ref.r[3] - y.plant[2], args.limits, y.controller)
 
 
 class SimulationResult(eqx.Module):

@@ -95,7 +95,13 @@ from ._mixer import (
     saturate_rotor_speeds_sq,
 )
 from ._params import QuadrotorParams
-from ._plant import CHANNEL_INDEX, hover_input, plant_derivative, thrust_direction
+from ._plant import (
+    CHANNEL_INDEX,
+    diverged_from,
+    hover_input,
+    plant_derivative,
+    thrust_direction,
+)
 from ._typing import Array, Float, Int, PlantState, Scalar, Vec3, Vec4
 from ._validation import check_nonnegative, concrete
 from ._wind import wind_wrench
@@ -410,11 +416,7 @@ def _vector_field(t, y, args):
 def _diverged(t, y: UnmodeledState, args: _UArgs, **kwargs):
     del kwargs
     ref = args.scenario.reference(t)
-    att = jnp.maximum(jnp.abs(y.plant[3]), jnp.abs(y.plant[4]))
-    alt_err = jnp.abs(ref.r[3] - y.plant[2])
-    finite = jnp.all(jnp.isfinite(y.plant)) & jnp.all(jnp.isfinite(y.controller)) & jnp.all(
-        jnp.isfinite(y.rotors))
-    return (att > args.limits.attitude) | (alt_err > args.limits.altitude_error) | ~finite
+    return diverged_from(y.plant, ref.r[3] - y.plant[2], args.limits, y.controller, y.rotors)
 
 
 def _initial_state(controller, scenario, settings, args, dtype):

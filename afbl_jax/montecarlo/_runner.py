@@ -47,7 +47,7 @@ import json
 import os
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import equinox as eqx
@@ -99,9 +99,8 @@ class SolverSettings:
     def with_tolerances_for(self, strategy: str) -> SolverSettings:
         """These settings with unset tolerances filled in from ``strategy``'s defaults."""
         rtol, atol = STRATEGY_TOLERANCES.get(strategy, STRATEGY_TOLERANCES["vmap"])
-        return SolverSettings(self.solver, rtol if self.rtol is None else self.rtol,
-                              atol if self.atol is None else self.atol, self.n_save,
-                              self.max_steps)
+        return replace(self, rtol=rtol if self.rtol is None else self.rtol,
+                       atol=atol if self.atol is None else self.atol)
 
     def __post_init__(self):
         if not ((self.rtol is None or self.rtol > 0) and (self.atol is None or self.atol > 0)):
@@ -143,13 +142,25 @@ def _vmap_chunk(controller, chunk: CaseBatch, settings: SolverSettings):
         controller, chunk.scenario, chunk.vehicle, chunk.model, settings, chunk.unmodeled)
 
 
-def _batch_strategy(strategy: str, dtype: str, group_size: int | None) -> Strategy:
+BATCH_SETTINGS = {
+    "ensemble_f32": {"strategy": "ensemble", "dtype": "float32", "group_size": GROUP_SIZE,
+                     "chunk_size": INNER_CHUNK},
+    "ensemble": {"strategy": "ensemble", "dtype": "float64", "group_size": GROUP_SIZE,
+                 "chunk_size": INNER_CHUNK},
+    "vmap": {"strategy": "vmap", "dtype": None, "group_size": None, "chunk_size": INNER_CHUNK},
+}
+"""`afbl_jax.simulate_batch` settings of the built-in strategies (besides `SolverSettings`);
+``dtype`` None: JAX's default float."""
+
+
+def _batch_strategy(name: str) -> Strategy:
+    kwargs = BATCH_SETTINGS[name]
+
     def run(controller, chunk: CaseBatch, settings: SolverSettings, devices=None):
         m = simulate_batch(
-            controller, chunk.scenario, chunk.vehicle, chunk.model, strategy=strategy,
-            solver=settings.solver, rtol=settings.rtol, atol=settings.atol, dtype=dtype,
-            max_steps=settings.max_steps, n_save=settings.n_save, group_size=group_size,
-            chunk_size=INNER_CHUNK, devices=devices)
+            controller, chunk.scenario, chunk.vehicle, chunk.model, solver=settings.solver,
+            rtol=settings.rtol, atol=settings.atol, max_steps=settings.max_steps,
+            n_save=settings.n_save, devices=devices, **kwargs)
         return {"ise_attitude": m.ise_attitude, "ise_altitude": m.ise_altitude,
                 "peak_attitude_error": m.peak_attitude_error,
                 "peak_altitude_error": m.peak_altitude_error,
@@ -159,7 +170,7 @@ def _batch_strategy(strategy: str, dtype: str, group_size: int | None) -> Strate
     return run
 
 
-_batch_vmap = _batch_strategy("vmap", "float64", None)
+_batch_vmap = _batch_strategy("vmap")
 
 
 def vmap_strategy(controller: AbstractController, chunk: CaseBatch, settings: SolverSettings,
@@ -176,8 +187,8 @@ def vmap_strategy(controller: AbstractController, chunk: CaseBatch, settings: So
 Strategy = Callable[..., dict]
 """``(controller, chunk, settings, devices) -> metrics dict`` (devices: tuple or None)."""
 STRATEGIES: dict[str, Strategy] = {
-    "ensemble_f32": _batch_strategy("ensemble", "float32", GROUP_SIZE),
-    "ensemble": _batch_strategy("ensemble", "float64", GROUP_SIZE),
+    "ensemble_f32": _batch_strategy("ensemble_f32"),
+    "ensemble": _batch_strategy("ensemble"),
     "vmap": vmap_strategy,
 }
 """Chunk strategies by name (see the module docstring)."""
@@ -199,12 +210,21 @@ def register_strategy(name: str, fn: Strategy, *, unmodeled: bool = False) -> No
 def resolve_strategy(strategy: str | None, distribution: Distribution) -> str:
     """``None``/``"auto"``: `DEFAULT_STRATEGY`, or ``"vmap"`` when the distribution's
     ``[unmodeled]`` section is enabled (only it simulates those dynamics)."""
+    return _resolve(strategy, unmodeled=distribution.spec["unmodeled"]["enabled"])
+
+
+def _resolve(strategy: str | None, *, unmodeled: bool) -> str:
     if strategy in (None, "auto"):
-        return "vmap" if distribution.spec["unmodeled"]["enabled"] else DEFAULT_STRATEGY
+        return "vmap" if unmodeled else DEFAULT_STRATEGY
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown strategy {strategy!r}; allowed: auto, "
                          f"{', '.join(STRATEGIES)}.")
     return strategy
+
+
+def _local_devices(shard: bool) -> tuple:
+    """All local devices, or only the first one."""
+    return tuple(jax.local_devices()) if shard else (jax.local_devices()[0],)
 
 
 def shard_chunk(chunk: CaseBatch, devices=None) -> CaseBatch:
@@ -235,20 +255,14 @@ def run_chunk(controller: AbstractController, chunk: CaseBatch, *,
     """Metrics of every case of ``chunk`` for ``controller`` as NumPy arrays; ``strategy``
     None/"auto": `DEFAULT_STRATEGY`, or "vmap" for a chunk with unmodeled dynamics;
     ``shard``: split the case axis over all local devices (else the default device only)."""
-    if strategy in (None, "auto"):
-        strategy = "vmap" if chunk.unmodeled is not None else DEFAULT_STRATEGY
+    strategy = _resolve(strategy, unmodeled=chunk.unmodeled is not None)
     settings = (settings or SolverSettings()).with_tolerances_for(strategy)
-    try:
-        fn = STRATEGIES[strategy]
-    except KeyError:
-        raise ValueError(f"unknown strategy {strategy!r}; allowed: "
-                         f"{', '.join(STRATEGIES)}.") from None
+    fn = STRATEGIES[strategy]
     if chunk.unmodeled is not None and strategy not in UNMODELED_STRATEGIES:
         raise ValueError(f"strategy {strategy!r} does not simulate unmodeled dynamics; with "
                          "the distribution's [unmodeled] section enabled use one of "
                          f"{', '.join(sorted(UNMODELED_STRATEGIES))}.")
-    devices = tuple(jax.local_devices()) if shard else (jax.local_devices()[0],)
-    out = fn(controller, chunk, settings, devices)
+    out = fn(controller, chunk, settings, _local_devices(shard))
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -387,19 +401,18 @@ def run_montecarlo(
         chunk_dir.mkdir(parents=True, exist_ok=True)
         run_file.write_text(text)
     n_chunks = -(-int(n_cases) // chunk_size)
+    mine = host_chunks(n_chunks, host_index, host_count)
     if out is not None:
         # provenance of every invocation (a resumed run may span several code revisions)
         import datetime as _dt
 
         from .._meta import git_revision
 
-        mine = host_chunks(n_chunks, host_index, host_count)
         done = sum(chunk_file(chunk_dir, c).exists() for c in mine)
         entry = {"started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                  "git_revision": git_revision(), "chunks_already_done": int(done),
                  "n_chunks": len(mine), "host": [int(host_index), int(host_count)],
-                 "devices": [str(d) for d in jax.local_devices()] if shard
-                 else [str(jax.local_devices()[0])]}
+                 "devices": [str(d) for d in _local_devices(shard)]}
         with open(out / "invocations.jsonl", "a") as fh:
             fh.write(json.dumps(entry) + "\n")
     tables = []
@@ -407,9 +420,8 @@ def run_montecarlo(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(host_chunks(n_chunks, host_index, host_count)) * chunk_size,
-                   unit="case", desc="monte carlo")
-    for c in host_chunks(n_chunks, host_index, host_count):
+        bar = tqdm(total=len(mine) * chunk_size, unit="case", desc="monte carlo")
+    for c in mine:
         start = c * chunk_size
         n_valid = min(chunk_size, int(n_cases) - start)
         path = chunk_file(chunk_dir, c) if chunk_dir is not None else None
