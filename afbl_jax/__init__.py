@@ -2,72 +2,111 @@
 
 Source: Eltayeb, Rahmat, Basri, "Adaptive Feedback Linearization Controller for Stabilization
 of Quadrotor UAV", IJIE 12(4), 2020; deviations in docs/paper_notes.md.
+
+Packages follow the data flow: `afbl_jax.model` (vehicle, plants, actuators, aerodynamics,
+controllers and their sampling) and `afbl_jax.scenario` (references, disturbances, wind) ->
+`afbl_jax.sim` (the closed loop; one case or batched) -> `afbl_jax.metrics` ->
+`afbl_jax.studies` (reproduce, montecarlo, tuning, unmodeled, bench) -> `afbl_jax.io`,
+`afbl_jax.plotting`, `afbl_jax.cli`. Importing this package loads neither the studies nor
+pyarrow or matplotlib (the study names below are imported on first use).
 """
 
-from . import tuning as tuning
-from ._disturbances import PulseDisturbance as PulseDisturbance
-from ._disturbances import no_disturbance as no_disturbance
-from ._mixer import actuate as actuate
-from ._mixer import allocation_matrix as allocation_matrix
-from ._mixer import inputs_from_rotor_speeds_sq as inputs_from_rotor_speeds_sq
-from ._mixer import omega_d as omega_d
-from ._mixer import rotor_speeds_sq_from_inputs as rotor_speeds_sq_from_inputs
-from ._mixer import saturate_rotor_speeds_sq as saturate_rotor_speeds_sq
-from ._params import QuadrotorParams as QuadrotorParams
-from ._plant import CHANNELS as CHANNELS
-from ._plant import STATE_LAYOUT as STATE_LAYOUT
-from ._plant import feedback_linearize as feedback_linearize
-from ._plant import hover_input as hover_input
-from ._plant import plant_derivative as plant_derivative
-from ._plant import thrust_direction as thrust_direction
-from ._references import Reference as Reference
-from ._references import ReferenceSample as ReferenceSample
-from ._references import make_reference as make_reference
-from ._references import min_jerk_blend as min_jerk_blend
-from ._scenarios import PROFILES as PROFILES
-from ._scenarios import SCENARIO_KINDS as SCENARIO_KINDS
-from ._scenarios import Scenario as Scenario
-from ._scenarios import paper_disturbance as paper_disturbance
-from ._scenarios import paper_reference as paper_reference
-from ._scenarios import paper_scenario as paper_scenario
-from ._scenarios import stack_scenarios as stack_scenarios
-from ._simulate import COST_LAYOUT as COST_LAYOUT
-from ._simulate import SOLVERS as SOLVERS
-from ._simulate import STATUS_MESSAGES as STATUS_MESSAGES
-from ._simulate import STATUS_NAMES as STATUS_NAMES
-from ._simulate import ClosedLoopState as ClosedLoopState
-from ._simulate import DivergenceLimits as DivergenceLimits
-from ._simulate import SimulationResult as SimulationResult
-from ._simulate import closed_loop_vector_field as closed_loop_vector_field
-from ._simulate import simulate as simulate
-from ._simulate import status_message as status_message
-from ._unmodeled import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT
-from ._unmodeled import PLANT_MODELS as PLANT_MODELS
-from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics
-from ._unmodeled import UnmodeledState as UnmodeledState
-from ._unmodeled import body_rates_from_euler_rates as body_rates_from_euler_rates
-from ._unmodeled import euler_rates_from_body_rates as euler_rates_from_body_rates
-from ._unmodeled import full_plant_derivative as full_plant_derivative
-from ._unmodeled import measure as measure
-from ._unmodeled import measurement_noise as measurement_noise
-from ._unmodeled import stack_unmodeled as stack_unmodeled
-from ._wind import Wind as Wind
-from ._wind import no_wind as no_wind
-from .controllers import AFBL as AFBL
-from .controllers import CONTROLLERS as CONTROLLERS
-from .controllers import FBLPID as FBLPID
-from .controllers import AbstractController as AbstractController
-from .controllers import AFBLPaper as AFBLPaper
-from .controllers import make_controller as make_controller
-from .tuning import TuneConfig as TuneConfig
-from .tuning import run_tuning as run_tuning
-from .tuning import tune as tune
+import importlib
+import importlib.metadata
 
-__version__ = "0.1.0"
+from .io import gains_to_dict as gains_to_dict
+from .io import load_gains as load_gains
+from .io import save_gains as save_gains
+from .metrics import METRIC_NAMES as METRIC_NAMES
+from .metrics import BatchMetrics as BatchMetrics
+from .metrics import metrics_from_result as metrics_from_result
+from .metrics import peaks_over_samples as peaks_over_samples
+from .metrics import sample_peaks as sample_peaks
+from .model import AFBL as AFBL
+from .model import CHANNELS as CHANNELS
+from .model import CONTROLLERS as CONTROLLERS
+from .model import FBLPID as FBLPID
+from .model import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT
+from .model import PLANT_MODELS as PLANT_MODELS
+from .model import STATE_LAYOUT as STATE_LAYOUT
+from .model import AbstractActuators as AbstractActuators
+from .model import AbstractAerodynamics as AbstractAerodynamics
+from .model import AbstractController as AbstractController
+from .model import AbstractPlant as AbstractPlant
+from .model import AbstractSampling as AbstractSampling
+from .model import AFBLPaper as AFBLPaper
+from .model import ContinuousControl as ContinuousControl
+from .model import DigitalControl as DigitalControl
+from .model import FirstOrderRotors as FirstOrderRotors
+from .model import InstantRotors as InstantRotors
+from .model import LinearDrag as LinearDrag
+from .model import PaperPlant as PaperPlant
+from .model import QuadrotorParams as QuadrotorParams
+from .model import ReferenceSample as ReferenceSample
+from .model import RigidBodyPlant as RigidBodyPlant
+from .model import UnmodeledDynamics as UnmodeledDynamics
+from .model import actuate as actuate
+from .model import allocation_matrix as allocation_matrix
+from .model import body_rates_from_euler_rates as body_rates_from_euler_rates
+from .model import euler_rates_from_body_rates as euler_rates_from_body_rates
+from .model import feedback_linearize as feedback_linearize
+from .model import full_plant_derivative as full_plant_derivative
+from .model import hover_input as hover_input
+from .model import inputs_from_rotor_speeds_sq as inputs_from_rotor_speeds_sq
+from .model import make_controller as make_controller
+from .model import measure as measure
+from .model import measurement_noise as measurement_noise
+from .model import omega_d as omega_d
+from .model import plant_derivative as plant_derivative
+from .model import rotation_matrix as rotation_matrix
+from .model import rotor_speeds_sq_from_inputs as rotor_speeds_sq_from_inputs
+from .model import saturate_rotor_speeds_sq as saturate_rotor_speeds_sq
+from .model import stack_unmodeled as stack_unmodeled
+from .model import thrust_direction as thrust_direction
+from .scenario import PROFILES as PROFILES
+from .scenario import SCENARIO_KINDS as SCENARIO_KINDS
+from .scenario import PulseDisturbance as PulseDisturbance
+from .scenario import Reference as Reference
+from .scenario import Scenario as Scenario
+from .scenario import Wind as Wind
+from .scenario import make_reference as make_reference
+from .scenario import min_jerk_blend as min_jerk_blend
+from .scenario import no_disturbance as no_disturbance
+from .scenario import no_wind as no_wind
+from .scenario import paper_disturbance as paper_disturbance
+from .scenario import paper_reference as paper_reference
+from .scenario import paper_scenario as paper_scenario
+from .scenario import stack_scenarios as stack_scenarios
+from .sim import COST_LAYOUT as COST_LAYOUT
+from .sim import SOLVERS as SOLVERS
+from .sim import STATUS_MESSAGES as STATUS_MESSAGES
+from .sim import STATUS_NAMES as STATUS_NAMES
+from .sim import STRATEGIES as STRATEGIES
+from .sim import ClosedLoop as ClosedLoop
+from .sim import ClosedLoopState as ClosedLoopState
+from .sim import DivergenceLimits as DivergenceLimits
+from .sim import SimulationResult as SimulationResult
+from .sim import Status as Status
+from .sim import configure_cpu_devices as configure_cpu_devices
+from .sim import ensemble_rms_norm as ensemble_rms_norm
+from .sim import simulate as simulate
+from .sim import simulate_batch as simulate_batch
+from .sim import status_message as status_message
 
-# batched solving (issue 5)
-from ._batch import STRATEGIES as STRATEGIES
-from ._batch import BatchMetrics as BatchMetrics
-from ._batch import ensemble_rms_norm as ensemble_rms_norm
-from ._batch import simulate_batch as simulate_batch
-from ._devices import configure_cpu_devices as configure_cpu_devices
+try:
+    __version__ = importlib.metadata.version("afbl-jax")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree, not installed
+    __version__ = "0+unknown"
+
+_LAZY = {
+    "tune": "afbl_jax.studies.tuning",
+    "TuneConfig": "afbl_jax.studies.tuning",
+    "run_tuning": "afbl_jax.studies.tuning",
+}
+
+
+def __getattr__(name: str):
+    """Study entry points, imported on first use (so `import afbl_jax` stays light)."""
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'afbl_jax' has no attribute {name!r}")

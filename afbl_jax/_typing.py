@@ -9,5 +9,15 @@ Vec4 = Float[Array, "4"]
 PlantState = Float[Array, "12"]
 """Plant state, layout documented in `afbl_jax._plant` (``STATE_LAYOUT``)."""
 
-__all__ = ["Array", "ArrayLike", "Bool", "Float", "Int", "PlantState", "Scalar", "ScalarLike",
-           "Vec3", "Vec4"]
+__all__ = [
+    "Array",
+    "ArrayLike",
+    "Bool",
+    "Float",
+    "Int",
+    "PlantState",
+    "Scalar",
+    "ScalarLike",
+    "Vec3",
+    "Vec4",
+]

@@ -49,3 +49,10 @@ def check_last_dim(owner: str, name: str, x, size: int) -> None:
             f"{owner}.{name} must have a last dimension of {size} (channel order phi, theta, "
             f"psi, z), got shape {shape}."
         )
+
+
+def as_float(x):
+    """``x`` as a JAX array of JAX's default float dtype (the converter of every float field)."""
+    import jax.numpy as jnp
+
+    return jnp.asarray(x, dtype=jnp.result_type(float))

@@ -95,8 +95,12 @@ print("max |xdot| at hover =", float(jnp.max(jnp.abs(xdot))))
 M = A.allocation_matrix(p)  # u = M @ W
 W = A.rotor_speeds_sq_from_inputs(p, u_hover)
 print("allocation matrix M (rows u1..u4, columns rotors 1..4):\n", np.asarray(M))
-print("hover rotor speeds [rad/s] =", np.asarray(jnp.sqrt(W)), "(p.hover_omega =",
-      f"{float(p.hover_omega):.2f})")
+print(
+    "hover rotor speeds [rad/s] =",
+    np.asarray(jnp.sqrt(W)),
+    "(p.hover_omega =",
+    f"{float(p.hover_omega):.2f})",
+)
 print("M @ W - u_hover            =", np.asarray(M @ W - u_hover))
 
 # A random command goes through the mixer and comes back unchanged:
@@ -151,7 +155,7 @@ print("mixer round-trip error     =", float(jnp.max(jnp.abs(err))))
 # %%
 ctrls = {name: A.make_controller(name) for name in ("fbl", "afbl", "afbl_paper")}
 for name, c in ctrls.items():
-    print(f"{name:<11}", {g: v for g, v in c.gains().items()})
+    print(f"{name:<11}", A.gains_to_dict(c))
 
 # %% [markdown]
 # ### Linear error dynamics
@@ -167,8 +171,10 @@ for name, c in ctrls.items():
 
 # %%
 fbl, afbl = ctrls["fbl"], ctrls["afbl"]
-print(f"{'channel':<8}{'PID poles: s^3 + D s^2 + P s + I':<48}"
-      f"{'adaptation poles: s^2 + K s + 1/gamma':<40}{'1/(gamma K) [1/s]':>18}")
+print(
+    f"{'channel':<8}{'PID poles: s^3 + D s^2 + P s + I':<48}"
+    f"{'adaptation poles: s^2 + K s + 1/gamma':<40}{'1/(gamma K) [1/s]':>18}"
+)
 for i, ch in enumerate(A.CHANNELS):
     kp, ki, kd = float(fbl.P[i]), float(fbl.I[i]), float(fbl.D[i])
     K, gamma = float(afbl.k[i]), float(afbl.gamma[i])
@@ -206,8 +212,10 @@ t0 = time.perf_counter()
 r = A.simulate(afbl, sc, rtol=1e-8, atol=1e-10, n_save=401)
 print(f"simulate: {time.perf_counter() - t0:.1f} s (including JIT compilation)")
 print(f"status = {A.status_message(r.status)}, solver steps = {int(r.num_steps)}")
-print(f"ISE attitude = {float(r.ise_attitude):.4e} rad^2 s, "
-      f"ISE altitude = {float(r.ise_altitude):.4e} m^2 s")
+print(
+    f"ISE attitude = {float(r.ise_attitude):.4e} rad^2 s, "
+    f"ISE altitude = {float(r.ise_altitude):.4e} m^2 s"
+)
 
 # %%
 ts = np.asarray(r.ts)
@@ -220,8 +228,9 @@ axes[1].plot(ts, r.plant[:, 3], "tab:blue", label=r"$\phi$ (AFBL)")
 axes[1].set_ylabel(r"$\phi$ [rad]")
 for i in range(4):
     axes[2].plot(ts, r.rotor_speeds[:, i], lw=1, label=rf"$\Omega_{i + 1}$")
-axes[2].axhline(float(jnp.sqrt(1.5) * p.hover_omega), color="gray", ls=":", lw=1,
-                label="hover, 1.5 m")
+axes[2].axhline(
+    float(jnp.sqrt(1.5) * p.hover_omega), color="gray", ls=":", lw=1, label="hover, 1.5 m"
+)
 axes[2].set_ylabel("rotor speed [rad/s]")
 axes[2].set_xlabel("time [s]")
 for ax in axes:
@@ -254,9 +263,11 @@ rb = jax.vmap(lambda s: A.simulate(afbl, s, rtol=1e-8, atol=1e-10, n_save=401))(
 print(f"vmap over {len(pairs)} scenarios: {time.perf_counter() - t0:.1f} s (including JIT)")
 print(f"{'scenario':<16}{'ISE att [rad^2 s]':>18}{'ISE alt [m^2 s]':>17}{'steps':>7}  status")
 for i, (k, prof) in enumerate(pairs):
-    print(f"{k + '_' + prof:<16}{float(rb.ise_attitude[i]):>18.4e}"
-          f"{float(rb.ise_altitude[i]):>17.4e}{int(rb.num_steps[i]):>7}  "
-          f"{A.STATUS_NAMES[int(rb.status[i])]}")
+    print(
+        f"{k + '_' + prof:<16}{float(rb.ise_attitude[i]):>18.4e}"
+        f"{float(rb.ise_altitude[i]):>17.4e}{int(rb.num_steps[i]):>7}  "
+        f"{A.STATUS_NAMES[int(rb.status[i])]}"
+    )
 
 # %% [markdown]
 # In the ideal cases the altitude ISE of `afbl` is zero to solver precision. The values of about
@@ -270,6 +281,7 @@ for i, (k, prof) in enumerate(pairs):
 # respect to every gain of the controller at once: $\gamma$, $K$ and $\lambda$. The gradient is
 # exact for the discretized solution (diffrax's `RecursiveCheckpointAdjoint`). We check the $K$
 # entries with a central finite difference of relative step $10^{-4}$.
+
 
 # %%
 def ise_att(ctrl):
@@ -315,10 +327,10 @@ for i, ch in enumerate(A.CHANNELS):
 # Tables 4/5.
 
 # %%
-from afbl_jax._reproduce import format_ise_table, run_reproduction
+from afbl_jax.studies.reproduce import ReproduceConfig, format_ise_table, run_reproduction
 
 t0 = time.perf_counter()
-res = run_reproduction(ctrls, n_save=401)
+res = run_reproduction(ReproduceConfig(ctrls, n_save=401))
 print(f"run_reproduction: {time.perf_counter() - t0:.1f} s\n")
 print(format_ise_table(res))
 assert not res.failures(), res.failures()
@@ -337,13 +349,16 @@ from pathlib import Path
 
 from IPython.display import Image, display
 
-from afbl_jax.plotting import plot_paper_figures  # note: selects matplotlib's Agg backend
+from afbl_jax.plotting.paper import plot_paper_figures
 
 fig_dir = Path(tempfile.mkdtemp(prefix="afbl_figs_"))
 paths = {pth.name: pth for pth in plot_paper_figures(res.runs, fig_dir)}
 print(len(paths), "figures written to a temporary folder")
-for name in ("fig16_takeoff_landing_uncertain.png", "fig19_attitude_error_uncertain.png",
-             "overview_all_controllers.png"):
+for name in (
+    "fig16_takeoff_landing_uncertain.png",
+    "fig19_attitude_error_uncertain.png",
+    "overview_all_controllers.png",
+):
     display(Image(filename=str(paths[name])))
 
 # %% [markdown]
@@ -357,15 +372,21 @@ keys = [f"{k}_{prof}" for k, prof in pairs]
 print(f"{'scenario':<16}{'att afbl/fbl':>13}{'alt afbl/fbl':>13}")
 for key in keys:
     f_, a_ = ise[key]["fbl"], ise[key]["afbl"]
-    print(f"{key:<16}{a_['ise_attitude'] / f_['ise_attitude']:>13.3g}"
-          f"{a_['ise_altitude'] / f_['ise_altitude']:>13.3g}")
+    print(
+        f"{key:<16}{a_['ise_attitude'] / f_['ise_attitude']:>13.3g}"
+        f"{a_['ise_altitude'] / f_['ise_altitude']:>13.3g}"
+    )
 print("\nstep profile, ideal -> uncertain:")
 for name in ("fbl", "afbl"):
     i_, u_ = ise["ideal_step"][name], ise["uncertain_step"][name]
-    print(f"  {name:<5} ISE att {i_['ise_attitude']:.2e} -> {u_['ise_attitude']:.2e}, "
-          f"ISE alt {i_['ise_altitude']:.2e} -> {u_['ise_altitude']:.2e}")
-print("paper (Tables 4/5): fbl att 0.0120 -> 0.0158, alt 0.0155 -> 0.0214; "
-      "afbl att 0.0027 -> 0.0027, alt 0.0098 -> 0.0099")
+    print(
+        f"  {name:<5} ISE att {i_['ise_attitude']:.2e} -> {u_['ise_attitude']:.2e}, "
+        f"ISE alt {i_['ise_altitude']:.2e} -> {u_['ise_altitude']:.2e}"
+    )
+print(
+    "paper (Tables 4/5): fbl att 0.0120 -> 0.0158, alt 0.0155 -> 0.0214; "
+    "afbl att 0.0027 -> 0.0027, alt 0.0098 -> 0.0099"
+)
 
 for key in keys:  # afbl beats FBL + PID on both costs in every scenario
     assert ise[key]["afbl"]["ise_attitude"] < ise[key]["fbl"]["ise_attitude"], key

@@ -33,8 +33,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 
 import afbl_jax as A
-from afbl_jax import montecarlo as mc
-from afbl_jax.montecarlo import _report
+from afbl_jax.io import table_columns
+from afbl_jax.plotting.montecarlo import figure_ecdf
+from afbl_jax.studies import montecarlo as mc
 
 # %% [markdown]
 # ## The distribution
@@ -49,8 +50,13 @@ print(dist.describe())
 
 # %%
 cases = mc.sample_cases(dist, 8, seed=0)
-print({k: np.round(np.asarray(v)[:4], 3) for k, v in cases.inputs.items()
-       if k in ("payload_fraction", "gust_speed", "turbulence_level", "inertia_scale")})
+print(
+    {
+        k: np.round(np.asarray(v)[:4], 3)
+        for k, v in cases.inputs.items()
+        if k in ("payload_fraction", "gust_speed", "turbulence_level", "inertia_scale")
+    }
+)
 again = mc.sample_cases(dist, 8, seed=0, start=4)
 assert np.array_equal(cases.inputs["gust_speed"][4:], again.inputs["gust_speed"][:4])
 
@@ -77,12 +83,12 @@ plt.show()
 # %%
 controllers = {"fbl": A.make_controller("fbl"), "afbl": A.make_controller("afbl")}
 table = mc.run_montecarlo(controllers, dist, 8, seed=0, chunk_size=8, progress=False)
-cols = mc.table_columns(table)
+cols = table_columns(table)
 summary = mc.summarize(cols)
 print(mc.format_summary(summary))
 
 # %%
-fig = _report.figure_ecdf(cols)
+fig = figure_ecdf(cols)
 plt.show()
 
 # %% [markdown]

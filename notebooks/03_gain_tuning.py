@@ -16,8 +16,9 @@
 # %% [markdown]
 # # Differentiable gain tuning: gradient descent through the closed-loop simulation
 #
-# `afbl_jax.tuning` tunes the AFBL gains (γ, K, λ per channel) or the FBL+PID gains (P, I, D)
-# with optax, differentiating the closed-loop cost through the diffrax solve. This notebook
+# `afbl_jax.studies.tuning` tunes the AFBL gains (γ, K, λ per channel) or the FBL+PID gains
+# (P, I, D) with optax, differentiating the closed-loop cost through the diffrax solve. This
+# notebook
 # runs everything at a small size (a few cases, a few steps); the full study is
 # `afbl tune --controller afbl --objective robust --cases 64 --steps 100 --out results/tune_afbl`
 # (results in the README).
@@ -44,7 +45,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import afbl_jax as A
-from afbl_jax import tuning as T
+from afbl_jax.studies import tuning as T
 
 T_START = time.perf_counter()
 np.set_printoptions(precision=4, linewidth=100)
@@ -53,7 +54,7 @@ np.set_printoptions(precision=4, linewidth=100)
 # ## 1. Cases and the per-case cost
 #
 # The robust objective averages (or takes the CVaR of) the per-case cost over a fixed batch of
-# cases drawn by the Monte-Carlo sampler (`afbl_jax.montecarlo`, default distribution):
+# cases drawn by the Monte-Carlo sampler (`afbl_jax.studies.montecarlo`, default distribution):
 # payload 0–50 %, inertia / thrust / drag coefficients ±10 %, disturbance pulses, 1-cosine
 # gusts, Dryden turbulence, initial offsets, step or sine attitude references. Every case is
 # reproducible from `(seed, index)`.
@@ -62,8 +63,13 @@ np.set_printoptions(precision=4, linewidth=100)
 cases = T.training_cases(6, seed=0)
 for key, value in cases.inputs.items():
     print(f"{key:26s}", np.round(np.asarray(value), 3).tolist())
-print("rotor limit omega_max [rad/s]:", float(cases.vehicle.omega_max[0]),
-      "(hover at nominal mass:", float(A.QuadrotorParams().hover_omega), ")")
+print(
+    "rotor limit omega_max [rad/s]:",
+    float(cases.vehicle.omega_max[0]),
+    "(hover at nominal mass:",
+    float(A.QuadrotorParams().hover_omega),
+    ")",
+)
 
 # %% [markdown]
 # Per case, $J = \mathrm{ISE}_{att} + w_{alt}\,\mathrm{ISE}_{alt} + w_{u}\int\|u-u_{hover}\|^2dt
@@ -72,8 +78,15 @@ print("rotor limit omega_max [rad/s]:", float(cases.vehicle.omega_max[0]),
 
 # %%
 config = T.ObjectiveConfig(objective="robust", risk="mean")
-tune_config = T.TuneConfig(controller="afbl", objective=config, n_cases=6, seed=0, steps=8,
-                           learning_rate=0.1, checkpoint_every=0)
+tune_config = T.TuneConfig(
+    controller="afbl",
+    objective=config,
+    n_cases=6,
+    seed=0,
+    steps=8,
+    learning_rate=0.1,
+    checkpoint_every=0,
+)
 tuner = T.Tuner(tune_config, cases=cases)  # jitted value-and-gradient + update, reused below
 space = tuner.space
 params0 = space.init_params()  # log of the paper gains (lambda = 4)
@@ -124,7 +137,7 @@ ax[1].set_ylabel("gain / paper gain")
 ax[1].set_xlabel("step")
 ax[1].legend(fontsize=6, ncol=3)
 fig.tight_layout()
-print(result.controller.gains())
+print(A.gains_to_dict(result.controller))
 
 # %% [markdown]
 # ## 4. Held-out check
@@ -137,6 +150,8 @@ heldout_cases = T.training_cases(6, seed=1)  # same batch size: the jitted funct
 for name, params in (("paper", params0), ("tuned", result.params)):
     (_, c), _ = tuner.value_and_grad(params, heldout_cases)
     ise = np.asarray(c.ise_attitude + config.w_altitude * c.ise_altitude)
-    print(f"{name:6s} ISE p50 {np.percentile(ise, 50):.4e}  p90 {np.percentile(ise, 90):.4e}  "
-          f"effort {np.mean(c.effort):.2f}  failed {int(np.sum(c.failed))}/6")
+    print(
+        f"{name:6s} ISE p50 {np.percentile(ise, 50):.4e}  p90 {np.percentile(ise, 90):.4e}  "
+        f"effort {np.mean(c.effort):.2f}  failed {int(np.sum(c.failed))}/6"
+    )
 print(f"notebook ran in {time.perf_counter() - T_START:.0f} s")

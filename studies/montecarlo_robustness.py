@@ -1,15 +1,17 @@
-"""Monte-Carlo robustness study (thin script; `afbl montecarlo` runs the same code).
+"""Monte-Carlo robustness study (same as `afbl montecarlo`).
 
-    python studies/montecarlo_robustness.py --cases 4096 --controllers fbl,afbl --seed 0 \
+    python studies/montecarlo_robustness.py --cases 4096 --controllers fbl,afbl --seed 0 \\
         --out results/mc
+
+Samples the cases (payload, model errors, pulses, gusts, Dryden turbulence, initial offsets,
+step/sine references; a TOML/JSON --distribution overrides any of it), simulates every case
+with every controller and writes OUT/results.parquet, meta.json, summary.json, report.md and
+report.html. Re-running the same command resumes.
 """
 
 import sys
 
-from afbl_jax.montecarlo._study import main
+from afbl_jax.cli import main
 
 if __name__ == "__main__":
-    from afbl_jax import configure_cpu_devices
-
-    configure_cpu_devices()  # one XLA device per core (AFBL_CPU_DEVICES=1 keeps one)
-    sys.exit(main())
+    sys.exit(main(["montecarlo", *sys.argv[1:]]))

@@ -14,3 +14,27 @@ def tree_allclose(x, y, *, rtol: float, atol: float) -> bool:
         np.shape(a) == np.shape(b) and np.allclose(a, b, rtol=rtol, atol=atol, equal_nan=True)
         for a, b in zip(lx, ly, strict=True)
     )
+
+
+class count_compiles:
+    """Context manager counting XLA compilations inside it (``.count``), through JAX's public
+    monitoring events: a second call with the same shapes must add none (no retracing)."""
+
+    def __enter__(self):
+        import jax.monitoring
+
+        self.count = 0
+
+        def listener(event, duration, **kwargs):
+            if event == "/jax/core/compile/backend_compile_duration":
+                self.count += 1
+
+        self._listener = listener
+        jax.monitoring.register_event_duration_secs_listener(listener)
+        return self
+
+    def __exit__(self, *exc):
+        import jax.monitoring
+
+        jax.monitoring.unregister_event_duration_listener(self._listener)
+        return False

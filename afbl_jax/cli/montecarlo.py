@@ -1,0 +1,163 @@
+"""``afbl montecarlo`` (the Monte-Carlo robustness study) and ``afbl merge`` (join the folders
+of a multi-host run)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ._common import (
+    Formatter,
+    UsageError,
+    add_controllers,
+    add_out,
+    add_progress,
+    add_tolerances,
+    check_tolerances,
+    controllers_from_args,
+)
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "montecarlo",
+        formatter_class=Formatter,
+        help="Monte-Carlo robustness study: payload, model error, wind; paired controllers",
+        description="Sample --cases cases from the distribution, simulate each with every "
+        "controller (paired), write OUT/results.parquet, meta.json, summary.json, report.md, "
+        "report.html and print a summary. Re-running the same command resumes.",
+    )
+    p.add_argument("--cases", type=int, default=4096, help="number of cases")
+    add_controllers(p, "fbl,afbl")
+    p.add_argument("--seed", type=int, default=0, help="seed of the cases")
+    add_out(p, "output folder (created; re-running the same command there resumes)")
+    p.add_argument(
+        "--distribution",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="TOML or JSON file overriding the default distribution",
+    )
+    p.add_argument(
+        "--chunk-size", type=int, default=256, help="cases per compiled chunk and per chunk file"
+    )
+    p.add_argument(
+        "--strategy",
+        default="auto",
+        help="how a chunk is solved: ensemble_f32 (float32 grouped ensembles, the "
+        "fastest within the 1e-3 accuracy bound), ensemble (float64), vmap (float64, "
+        "one step sequence per case); auto: ensemble_f32",
+    )
+    add_tolerances(p, note=" (default: 3e-6 / 3e-7 for ensemble_f32, else 1e-6 / 1e-8)")
+    p.add_argument("--no-report", action="store_true", help="skip report.md/html and figures")
+    add_progress(p)
+    hosts = p.add_argument_group(
+        "several hosts",
+        "run the same command on every host (each with its own --out, or one "
+        "shared folder), then join the folders with `afbl merge`",
+    )
+    hosts.add_argument(
+        "--host-index", type=int, default=None, help="this host's index i (runs chunks i, i+P, ...)"
+    )
+    hosts.add_argument("--host-count", type=int, default=None, help="number of hosts P")
+    hosts.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() (coordinator from the cluster "
+        "environment or JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, "
+        "JAX_PROCESS_ID) and take i, P from jax.process_index/process_count",
+    )
+    p.set_defaults(func=run)
+
+    m = sub.add_parser(
+        "merge",
+        formatter_class=Formatter,
+        help="join the result folders of a multi-host Monte-Carlo run and write its report",
+        description="Check that the folders hold hosts 0..P-1 of one configuration with every "
+        "chunk finished, then write OUT/results.parquet (equal to a one-host run's), run.json, "
+        "meta.json, summary.json, report.md/html and print the summary.",
+    )
+    m.add_argument(
+        "shards", nargs="+", type=Path, metavar="FOLDER", help="the hosts' --out folders"
+    )
+    add_out(m, "merged output folder")
+    m.add_argument("--no-report", action="store_true", help="skip report.md/html and figures")
+    m.set_defaults(func=run_merge)
+
+
+def run(args) -> int:
+    """Validate everything before any simulation (errors: exit 2, nothing written)."""
+    from ..studies.montecarlo import (
+        STRATEGIES,
+        SolverSettings,
+        StudyConfig,
+        default_distribution,
+        load_distribution,
+        resolve_strategy,
+        run_study,
+    )
+
+    if args.cases < 1:
+        raise UsageError(f"--cases must be >= 1, got {args.cases}.")
+    if args.chunk_size < 1:
+        raise UsageError(f"--chunk-size must be >= 1, got {args.chunk_size}.")
+    if args.seed < 0:
+        raise UsageError(f"--seed must be >= 0, got {args.seed}.")
+    if args.strategy != "auto" and args.strategy not in STRATEGIES:
+        raise UsageError(
+            f"unknown --strategy {args.strategy!r}; allowed: auto, {', '.join(STRATEGIES)}."
+        )
+    if args.distributed and (args.host_index is not None or args.host_count is not None):
+        raise UsageError(
+            "--distributed takes the host index and count from JAX; do not also "
+            "give --host-index/--host-count."
+        )
+    if (args.host_index is None) != (args.host_count is None):
+        raise UsageError("give both --host-index and --host-count (or neither).")
+    if args.host_count is not None and not (0 <= args.host_index < args.host_count):
+        raise UsageError(
+            f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
+        )
+    check_tolerances(args)
+    controllers = controllers_from_args(args)
+    distribution = (
+        load_distribution(args.distribution) if args.distribution else default_distribution()
+    )
+    strategy = resolve_strategy(args.strategy)
+    settings = SolverSettings(rtol=args.rtol, atol=args.atol).with_tolerances_for(strategy)
+    import jax
+
+    host_index, host_count = (args.host_index or 0), (args.host_count or 1)
+    if args.distributed:
+        jax.distributed.initialize()
+        host_index, host_count = jax.process_index(), jax.process_count()
+    hosts = f", host {host_index} of {host_count}" if host_count > 1 else ""
+    print(
+        f"afbl montecarlo: {args.cases} cases x {', '.join(controllers)} (seed {args.seed}, "
+        f"chunk {args.chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
+        f"{settings.atol:g}, {len(jax.local_devices())} device(s){hosts}) -> {args.out}",
+        flush=True,
+    )
+    run_study(
+        StudyConfig(
+            controllers,
+            args.out,
+            n_cases=args.cases,
+            seed=args.seed,
+            distribution=distribution,
+            chunk_size=args.chunk_size,
+            strategy=strategy,
+            settings=settings,
+            report=not args.no_report,
+            progress=not args.no_progress,
+            host_index=host_index,
+            host_count=host_count,
+        )
+    )
+    return 0
+
+
+def run_merge(args) -> int:
+    from ..studies.montecarlo import merge_study
+
+    merge_study(args.shards, args.out, report=not args.no_report)
+    return 0

@@ -1,0 +1,77 @@
+"""``afbl reproduce``: the paper reproduction (ISE table, ise.json, Figs. 8-21)."""
+
+from __future__ import annotations
+
+import sys
+
+from ._common import (
+    Formatter,
+    UsageError,
+    add_controllers,
+    add_out,
+    check_tolerances,
+    controllers_from_args,
+)
+from .unmodeled import add_unmodeled_arguments, unmodeled_from_args
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "reproduce",
+        formatter_class=Formatter,
+        help="run the paper's scenarios for fbl, afbl, afbl_paper; print ISE; write figures",
+        description="Paper reproduction: {ideal, uncertain} x {step, sine} x controllers. Prints "
+        "the ISE table beside the paper's Tables 4/5 and writes OUT/ise.json and OUT/fig*.png. "
+        "Exits with status 1 if any run failed or diverged.",
+    )
+    add_out(p)
+    add_controllers(p, "fbl,afbl,afbl_paper")
+    p.add_argument("--solver", default="tsit5", choices=["tsit5", "dopri5", "dopri8"])
+    p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance")
+    p.add_argument("--atol", type=float, default=1e-10, help="absolute tolerance")
+    p.add_argument("--n-save", type=int, default=2001, help="saved samples per run (>= 2)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    add_unmodeled_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..studies.reproduce import (
+        ReproduceConfig,
+        format_ise_table,
+        run_reproduction,
+        write_ise_json,
+    )
+
+    if args.n_save < 2:
+        raise UsageError(f"--n-save must be >= 2, got {args.n_save}.")
+    check_tolerances(args)
+    controllers = controllers_from_args(args)
+    settings = unmodeled_from_args(args)
+    print(
+        f"running {len(controllers)} controllers x 4 scenarios ({args.solver}, rtol="
+        f"{args.rtol:g}, atol={args.atol:g}) ...",
+        flush=True,
+    )
+    result = run_reproduction(
+        ReproduceConfig(
+            controllers,
+            solver=args.solver,
+            rtol=args.rtol,
+            atol=args.atol,
+            n_save=args.n_save,
+            unmodeled=settings,
+        )
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_ise_json(result, args.out / "ise.json")
+    print(format_ise_table(result))
+    if not args.no_figures:
+        from ..plotting.paper import plot_paper_figures
+
+        paths = plot_paper_figures(result.runs, args.out)
+        print(f"\nwrote {args.out / 'ise.json'} and {len(paths)} figures to {args.out}/")
+    failures = result.failures()
+    for key, name, why in failures:
+        print(f"FAILED: {key} / {name}: {why}", file=sys.stderr)
+    return 1 if failures else 0

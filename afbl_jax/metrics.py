@@ -1,0 +1,128 @@
+"""Per-case metrics: one definition for every solve path (single, vmap, ensemble).
+
+- ``ise_attitude`` [rad^2 s], ``ise_altitude`` [m^2 s], ``effort``, ``saturation``: the cost
+  integrals of the closed-loop state (`afbl_jax.sim.COST_LAYOUT`), up to the stop time;
+- ``peak_attitude_error`` [rad]: max over the samples of max(|e_phi|, |e_theta|, |e_psi|);
+- ``peak_altitude_error`` [m]: max over the samples of |e_z|;
+- ``peak_saturation`` [-]: max over the samples and the four rotors of commanded rotor speed /
+  omega_max (commanded speed = sqrt of the mixer's commanded Omega^2 through the controller's
+  model, clipped at 0); >= 1 means the command hit the rotor-speed limit.
+
+Peaks are taken at ``n_save`` equally spaced times over [t0, t1] (with digital control: the
+states linearly interpolated between control samples, the held command), counting only the
+samples at or before the run's end (`peaks_over_samples`); a run with no such sample has NaN
+peaks. `BatchMetrics` holds them per case; `metrics_from_result` converts a single
+`afbl_jax.simulate` result, and the ensemble computes the same samples inside its solve.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._typing import Array, Float, Int
+from .model import QuadrotorParams, rotor_speeds_sq_from_inputs
+
+METRIC_NAMES: tuple[str, ...] = (
+    "ise_attitude",
+    "ise_altitude",
+    "peak_attitude_error",
+    "peak_altitude_error",
+    "peak_saturation",
+    "solver_steps",
+    "t_final",
+    "status",
+)
+"""Per-case metric columns of a results table (see the module docstring)."""
+
+
+class BatchMetrics(eqx.Module):
+    """Per-case results (every field has leading axis N; unbatched for one case).
+
+    Attributes:
+        ise_attitude, ise_altitude, effort, saturation: cost integrals at the end of each run
+            (a diverged run's integrals stop where it diverged).
+        status: `afbl_jax.sim.Status` codes (0 ok, 1 diverged, 2 max_steps, 3 solver failure).
+        t_final: time each run ended [s] (t1, or where it stopped).
+        num_steps: solver steps (accepted + rejected); for an ensemble the shared count.
+        num_rejected_steps: rejected steps (shared count for an ensemble).
+        peak_attitude_error [rad], peak_altitude_error [m], peak_saturation [-]: maxima over
+            the samples before the run's end (module docstring); NaN without samples.
+    """
+
+    ise_attitude: Float[Array, " N"]
+    ise_altitude: Float[Array, " N"]
+    effort: Float[Array, " N"]
+    saturation: Float[Array, " N"]
+    status: Int[Array, " N"]
+    t_final: Float[Array, " N"]
+    num_steps: Int[Array, " N"]
+    num_rejected_steps: Int[Array, " N"]
+    peak_attitude_error: Float[Array, " N"]
+    peak_altitude_error: Float[Array, " N"]
+    peak_saturation: Float[Array, " N"]
+
+    @property
+    def ok(self) -> Array:
+        return self.status == 0
+
+
+def sample_peaks(
+    error: Float[Array, 4],
+    u_command: Float[Array, 4],
+    vehicle: QuadrotorParams,
+    model: QuadrotorParams,
+) -> Array:
+    """The three quantities whose maxima over the samples are a run's peaks, shape (3,):
+    max(|e_phi|, |e_theta|, |e_psi|) [rad], |e_z| [m], and max over the rotors of commanded rotor
+    speed / omega_max [-]."""
+    err = jnp.abs(error)
+    w_cmd = rotor_speeds_sq_from_inputs(model, u_command)
+    sat = jnp.sqrt(jnp.maximum(w_cmd, 0.0)) / vehicle.omega_max
+    return jnp.stack([jnp.max(err[:3]), err[3], jnp.max(sat)])
+
+
+def peaks_over_samples(ts, samples, t_final) -> Array:
+    """Max over the samples at ``ts`` (shape (n,)) with ts <= t_final of ``samples`` (n, 3);
+    non-finite samples are skipped; NaN where no sample counts. Returns shape (3,)."""
+    valid = (ts <= t_final)[:, None] & jnp.isfinite(samples)
+    peak = jnp.max(jnp.where(valid, samples, -jnp.inf), axis=0)
+    return jnp.where(jnp.any(valid, axis=0), peak, jnp.nan)
+
+
+def metrics_from_result(result, vehicle: QuadrotorParams, model: QuadrotorParams) -> BatchMetrics:
+    """`BatchMetrics` (unbatched) of one `afbl_jax.simulate` result; peaks from its saved
+    samples (NaN when it saved none)."""
+    if result.ts.shape[0]:
+        samples = jax.vmap(lambda e, u: sample_peaks(e, u, vehicle, model))(
+            result.error, result.u_command
+        )
+        peaks = peaks_over_samples(result.ts, samples, result.t_final)
+    else:
+        peaks = jnp.full((3,), jnp.nan, result.t_final.dtype)
+    return BatchMetrics(
+        result.ise_attitude,
+        result.ise_altitude,
+        result.effort,
+        result.saturation,
+        result.status,
+        result.t_final,
+        result.num_steps,
+        result.num_rejected_steps,
+        *peaks,
+    )
+
+
+def metric_columns(m: BatchMetrics) -> dict[str, Array]:
+    """The `METRIC_NAMES` columns of a results table from `BatchMetrics`."""
+    return {
+        "ise_attitude": m.ise_attitude,
+        "ise_altitude": m.ise_altitude,
+        "peak_attitude_error": m.peak_attitude_error,
+        "peak_altitude_error": m.peak_altitude_error,
+        "peak_saturation": m.peak_saturation,
+        "solver_steps": m.num_steps,
+        "t_final": m.t_final,
+        "status": m.status,
+    }

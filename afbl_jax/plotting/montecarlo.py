@@ -1,0 +1,149 @@
+"""Figures of a Monte-Carlo study (ISE vs payload, payload x gust heatmaps, ECDFs, worst cases),
+from the results columns alone; pyplot is imported on first use."""
+
+from __future__ import annotations
+
+import numpy as np
+
+ISE_METRICS = ("ise_attitude", "ise_altitude")
+
+
+def controller_names(cols: dict) -> list[str]:
+    """Controllers of a results table, in first-appearance order."""
+    names: list[str] = []
+    for c in cols["controller"]:
+        if c not in names:
+            names.append(str(c))
+    return names
+
+
+def _binned(x, y, edges):
+    med, p10, p90, centres = [], [], [], []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = (x >= lo) & (x <= hi)
+        if np.sum(m) >= 3:
+            med.append(np.median(y[m]))
+            p10.append(np.percentile(y[m], 10))
+            p90.append(np.percentile(y[m], 90))
+            centres.append(0.5 * (lo + hi))
+    return np.array(centres), np.array(med), np.array(p10), np.array(p90)
+
+
+def _log_scale_if_positive(ax, axis: str, values) -> None:
+    """Log scale when some plotted value is > 0 (tiny runs may have no bin or no ok run)."""
+    if np.any(np.asarray(values) > 0):
+        (ax.set_yscale if axis == "y" else ax.set_xscale)("log")
+
+
+def figure_ise_vs_payload(cols):
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    p = cols["payload_fraction"]
+    edges = np.linspace(p.min(), p.max() + 1e-12, 11)
+    for ax, metric in zip(axes, ISE_METRICS, strict=True):
+        plotted = [np.zeros(0)]
+        for name in controller_names(cols):
+            m = (cols["controller"] == name) & (cols["status"] == "ok")
+            c, med, lo, hi = _binned(p[m], cols[metric][m], edges)
+            (line,) = ax.plot(c, med, marker="o", label=f"{name} median")
+            ax.fill_between(c, lo, hi, color=line.get_color(), alpha=0.2, label=f"{name} P10-P90")
+            plotted.append(lo)
+        ax.set_xlabel("payload fraction p")
+        ax.set_ylabel(metric)
+        _log_scale_if_positive(ax, "y", np.concatenate(plotted))
+        ax.legend(fontsize=7)
+    fig.suptitle("ISE vs payload fraction (ok runs; binned median, P10-P90 band)")
+    fig.tight_layout()
+    return fig
+
+
+def figure_heatmaps(cols, n_bins: int = 6):
+    import matplotlib.pyplot as plt
+
+    names = controller_names(cols)
+    fig, axes = plt.subplots(2, len(names), figsize=(4.5 * len(names), 7), squeeze=False)
+    p, g = cols["payload_fraction"], cols["gust_speed"]
+    pe = np.linspace(p.min(), p.max() + 1e-12, n_bins + 1)
+    ge = np.linspace(g.min(), g.max() + 1e-12, n_bins + 1)
+    for j, name in enumerate(names):
+        m = cols["controller"] == name
+        fail = np.full((n_bins, n_bins), np.nan)
+        med = np.full((n_bins, n_bins), np.nan)
+        ip = np.clip(np.digitize(p[m], pe) - 1, 0, n_bins - 1)
+        ig = np.clip(np.digitize(g[m], ge) - 1, 0, n_bins - 1)
+        st, ise = cols["status"][m], cols["ise_attitude"][m]
+        for a in range(n_bins):
+            for b in range(n_bins):
+                sel = (ip == a) & (ig == b)
+                if np.any(sel):
+                    fail[b, a] = np.mean(st[sel] != "ok")
+                    okv = ise[sel & (st == "ok")]
+                    med[b, a] = np.median(okv) if len(okv) else np.nan
+        for i, (data, title) in enumerate(
+            ((fail, "failure probability"), (med, "median ISE attitude (ok runs)"))
+        ):
+            ax = axes[i, j]
+            limits = {"vmin": 0.0, "vmax": 1.0} if i == 0 else {}
+            im = ax.imshow(
+                data,
+                origin="lower",
+                aspect="auto",
+                extent=(pe[0], pe[-1], ge[0], ge[-1]),
+                cmap="viridis",
+                **limits,
+            )
+            fig.colorbar(im, ax=ax)
+            ax.set_title(f"{name}: {title}", fontsize=9)
+            ax.set_xlabel("payload fraction p")
+            ax.set_ylabel("gust speed [m/s]")
+    fig.tight_layout()
+    return fig
+
+
+def figure_ecdf(cols):
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for ax, metric in zip(axes, ISE_METRICS, strict=True):
+        plotted = [np.zeros(0)]
+        for name in controller_names(cols):
+            m = (cols["controller"] == name) & (cols["status"] == "ok")
+            x = np.sort(cols[metric][m])
+            n_all = int(np.sum(cols["controller"] == name))
+            ax.step(x, np.arange(1, len(x) + 1) / n_all, where="post", label=name)
+            plotted.append(x)
+        _log_scale_if_positive(ax, "x", np.concatenate(plotted))
+        ax.set_xlabel(metric)
+        ax.set_ylabel("fraction of all cases (failed runs never reach 1)")
+        ax.legend()
+    fig.suptitle("ECDF of ISE")
+    fig.tight_layout()
+    return fig
+
+
+def figure_worst(replays: dict):
+    import matplotlib.pyplot as plt
+
+    n = max(len(replays), 1)
+    fig, axes = plt.subplots(n, 2, figsize=(11, 2.4 * n), squeeze=False)
+    for i, (case, runs) in enumerate(replays.items()):
+        for name, r in runs.items():
+            valid = np.asarray(r.ts) <= float(r.t_final)
+            t = np.asarray(r.ts)[valid]
+            e = np.asarray(r.error)[valid]
+            axes[i, 0].plot(t, np.max(np.abs(e[:, :3]), axis=1), label=name)
+            axes[i, 1].plot(t, np.asarray(r.plant)[valid, 2], label=f"{name} z")
+        ref = next(iter(runs.values()))
+        axes[i, 1].plot(
+            np.asarray(ref.ts), np.asarray(ref.reference)[:, 3], "k--", lw=0.8, label="z ref"
+        )
+        axes[i, 0].set_ylabel(f"case {case}\nmax |e_att| [rad]", fontsize=8)
+        axes[i, 1].set_ylabel("z [m]")
+        axes[i, 0].legend(fontsize=7)
+        axes[i, 1].legend(fontsize=7)
+    axes[-1, 0].set_xlabel("t [s]")
+    axes[-1, 1].set_xlabel("t [s]")
+    fig.suptitle("five worst cases, re-simulated")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,392 @@
+"""Batched closed-loop solving: many cases per compiled call (`simulate_batch`).
+
+Strategies:
+
+- ``"vmap"``: ``jax.vmap`` over `simulate`. Every case has its own adaptive step sequence;
+  under vmap the batched ``while_loop`` runs until the slowest case is done, and each iteration
+  pays diffrax's per-step bookkeeping for every lane.
+- ``"ensemble"``: groups of cases solved as ONE ODE system each (`afbl_jax.sim.solve_group`:
+  shared steps, every case meeting its own tolerance, divergent cases frozen).
+
+Both run every closed loop: the paper's, or any ``unmodeled`` settings (full plant, motor lag,
+digital control with delay and noise). With digital control each ensemble group needs one
+control rate (its cases share their sample instants): `simulate_batch` checks this on concrete
+values and says which cases differ.
+
+``group_size`` (ensemble only) splits the batch into groups of that many consecutive cases, each
+its own ensemble, the groups vectorised with ``jax.vmap``. Groups matter when cases have
+*different* jump times (Monte-Carlo cases: random pulse and payload times): one ensemble of N
+such cases steps onto all of their jump times, a group only onto its own few.
+
+``chunk_size`` splits each device's cases into consecutive chunks solved one after the other
+inside the same compiled call (``jax.lax.map``): smaller working sets stay in cache.
+
+Devices: the case axis is split over ``devices`` (default: all local devices of the default
+backend) with ``jax.shard_map``; every device solves its own cases independently (no
+communication per step). On a CPU, XLA exposes one device unless
+``XLA_FLAGS=--xla_force_host_platform_device_count=K`` is set before JAX starts
+(`afbl_jax.configure_cpu_devices`). Case i goes to device i // ceil(N / devices); each device's
+block is padded with copies of its last case to a whole number of chunks; padding is dropped.
+
+Case-invariant inputs are hoisted: every input leaf equal in every case (checked on concrete
+values) is passed unbatched, so it is evaluated once per vector-field call for the whole batch.
+
+Both strategies compile once per (strategy, solver, tolerances, dtype, batch shapes, devices):
+chunks of the same size reuse the compiled program.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._validation import check_positive, concrete
+from ..metrics import BatchMetrics, metrics_from_result
+from ..model import AbstractController, QuadrotorParams, UnmodeledDynamics
+from ..scenario import Scenario
+from ._closed_loop import CaseInputs, ClosedLoop, DivergenceLimits
+from ._ensemble import solve_group
+from ._solve import get_solver, simulate
+
+STRATEGIES = ("vmap", "ensemble")
+"""Batched-solving strategies accepted by `simulate_batch`."""
+
+
+def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save) -> BatchMetrics:
+    del dtype  # simulate runs in the default float dtype
+
+    def one(p):
+        loop, inputs = eqx.combine(p, fixed)
+        r = simulate(
+            loop,
+            inputs.scenario,
+            inputs.vehicle,
+            inputs.model,
+            solver=solver,
+            rtol=rtol,
+            atol=atol,
+            n_save=n_save,
+            max_steps=max_steps,
+            limits=inputs.limits,
+        )
+        return metrics_from_result(r, inputs.vehicle, inputs.model)
+
+    return jax.vmap(one, axis_size=n)(part)
+
+
+def _ensemble(group_size, part, fixed, n, *rest) -> BatchMetrics:
+    if group_size is None or group_size >= n:
+        return solve_group(part, fixed, n, *rest)
+    groups = n // group_size
+    split = jax.tree.map(lambda x: x.reshape(groups, group_size, *x.shape[1:]), part)
+    out = jax.vmap(lambda p: solve_group(p, fixed, group_size, *rest), axis_size=groups)(split)
+    return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
+
+
+def case_layout(n: int, n_dev: int, chunk_size: int | None, group: int):
+    """(index array, chunk, chunks per device, per-device cases): position j of the laid-out
+    batch holds case ``index[j]``; device d gets positions [d L, (d + 1) L), L = chunks x chunk,
+    its real cases first, then copies of its last case."""
+    per_dev = -(-n // n_dev)
+    chunk = per_dev if chunk_size is None else min(chunk_size, per_dev)
+    chunk = -(-chunk // group) * group
+    n_chunks = -(-per_dev // chunk)
+    local = n_chunks * chunk
+    index = np.empty(n_dev * local, dtype=np.int64)
+    for d in range(n_dev):
+        real = np.arange(d * per_dev, min((d + 1) * per_dev, n))
+        if real.size == 0:
+            real = np.array([n - 1])
+        index[d * local : (d + 1) * local] = np.concatenate(
+            [real, np.full(local - real.size, real[-1])]
+        )
+    return index, chunk, n_chunks, per_dev
+
+
+@eqx.filter_jit
+def _run(
+    part,
+    fixed,
+    n,
+    strategy,
+    solver,
+    rtol,
+    atol,
+    dtype,
+    max_steps,
+    chunk_size,
+    group_size,
+    n_save,
+    devices,
+) -> BatchMetrics:
+    """``part``: the leaves that differ between cases (leading axis n); ``fixed``: the leaves
+    shared by every case (unbatched), so per-evaluation work on them is done once."""
+    n_dev = len(devices)
+    index, chunk, n_chunks, per_dev = case_layout(n, n_dev, chunk_size, group_size or 1)
+    local_n = n_chunks * chunk
+
+    def solve(p, fx):
+        args = (p, fx, chunk, solver, rtol, atol, np.dtype(dtype), max_steps, n_save)
+        if strategy == "ensemble":
+            return _ensemble(group_size, *args)
+        return _vmap(*args)
+
+    def local(p, fx):
+        # this device's cases, as consecutive chunks inside the one compiled program
+        if n_chunks == 1:
+            return solve(p, fx)
+        split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), p)
+        # map over chunk indices (not over `split`, which is empty when every leaf is shared)
+        out = jax.lax.map(
+            lambda i: solve(jax.tree.map(lambda x: x[i], split), fx), jnp.arange(n_chunks)
+        )
+        return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
+
+    part = jax.tree.map(lambda x: x[index], part)
+    if n_dev == 1:
+        out = local(part, fixed)
+    else:
+        from jax.sharding import Mesh, PartitionSpec
+
+        mesh = Mesh(np.asarray(devices), ("cases",))
+        # each device solves its own cases: no collective inside the solve (check_vma=False:
+        # diffrax's while-loop carries start unvarying and become device-varying)
+        out = jax.shard_map(
+            local,
+            mesh=mesh,
+            in_specs=(PartitionSpec("cases"), PartitionSpec()),
+            out_specs=PartitionSpec("cases"),
+            check_vma=False,
+        )(part, fixed)
+    first = np.concatenate(
+        [d * local_n + np.arange(max(0, min(per_dev, n - d * per_dev))) for d in range(n_dev)]
+    )
+    return jax.tree.map(lambda x: x[first], out)
+
+
+def _leading(x) -> int | None:
+    return None if np.ndim(x) == 0 else int(np.shape(x)[0])
+
+
+def _batch_axes(controller, scenarios, vehicles, models, unmodeled) -> tuple[int, dict]:
+    n = _leading(scenarios.t0)
+    if n is None:
+        raise ValueError(
+            "simulate_batch: scenarios must be batched (leading axis = cases; use "
+            "stack_scenarios), got an unbatched Scenario."
+        )
+    axes = {"scenarios": True}
+    probes = [
+        ("vehicles", vehicles, lambda p: p.m, 0),
+        ("models", models, lambda p: p.m, 0),
+        ("controller", controller, lambda c: getattr(c, c.gain_names[0]), 1),
+    ]
+    if unmodeled is not None:
+        probes.append(("unmodeled", unmodeled, lambda u: u.motor_tau, 0))
+    for name, tree, probe, base_ndim in probes:
+        leaf = probe(tree)
+        if np.ndim(leaf) == base_ndim:
+            axes[name] = False
+        elif np.ndim(leaf) == base_ndim + 1 and np.shape(leaf)[0] == n:
+            axes[name] = True
+        else:
+            raise ValueError(
+                f"simulate_batch: {name} must be unbatched or have leading axis {n} (the number "
+                f"of scenarios), got a leaf of shape {np.shape(leaf)}."
+            )
+    axes.setdefault("unmodeled", False)
+    return n, axes
+
+
+def _cast(tree, dtype):
+    return jax.tree.map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x, tree
+    )
+
+
+def _partition_cases(args, batched_mask):
+    """Split ``args`` into leaves that differ between cases (leading axis = cases) and leaves
+    that are the same for every case (their first row, unbatched). ``batched_mask``: a pytree
+    of bools, True for leaves with a case axis. Equality is checked on concrete values; traced
+    batched leaves count as differing."""
+
+    def differs(x, batched):
+        if not batched:
+            return False
+        c = concrete(x)
+        if c is None or np.ndim(c) == 0:
+            return True
+        return not np.array_equal(c, np.broadcast_to(c[:1], c.shape), equal_nan=True)
+
+    specs = jax.tree.map(differs, args, batched_mask)
+    part, fixed = eqx.partition(args, specs)
+    fixed = jax.tree.map(
+        lambda x, b: x[0] if (b and x is not None) else x,
+        fixed,
+        batched_mask,
+        is_leaf=lambda x: x is None,
+    )
+    return part, fixed
+
+
+def _check_group_rates(
+    loop: ClosedLoop, batched: bool, n: int, n_dev: int, chunk_size, group_size
+) -> None:
+    if not (loop.digital and batched):
+        return
+    rate = concrete(loop.sampling.control_rate)
+    if rate is None:
+        return
+    index, chunk, _, _ = case_layout(n, n_dev, chunk_size, group_size or 1)
+    group = group_size or chunk
+    laid = rate[index].reshape(-1, group)
+    bad = np.nonzero(~np.all(laid == laid[:, :1], axis=1))[0]
+    if bad.size:
+        cases = sorted(set(index.reshape(-1, group)[bad[0]].tolist()))
+        raise ValueError(
+            f"simulate_batch: the cases of an ensemble group share their control sample "
+            f"instants, but cases {cases} of one group have control rates "
+            f"{sorted(set(rate[cases].tolist()))} Hz; give each group of {group} consecutive "
+            f"cases one rate (or use strategy='vmap')."
+        )
+
+
+def simulate_batch(
+    controller: AbstractController,
+    scenarios: Scenario,
+    vehicles: QuadrotorParams | None = None,
+    models: QuadrotorParams | None = None,
+    *,
+    unmodeled: UnmodeledDynamics | None = None,
+    strategy: Literal["vmap", "ensemble"] = "ensemble",
+    solver: str | diffrax.AbstractSolver = "tsit5",
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+    dtype=None,
+    max_steps: int = 16384,
+    limits: DivergenceLimits | None = None,
+    chunk_size: int | None = None,
+    group_size: int | None = None,
+    n_save: int = 0,
+    devices=None,
+) -> BatchMetrics:
+    """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
+
+    Args:
+        controller: one controller (shared) or a batch (gains with leading axis N).
+        scenarios: batch of N scenarios (`stack_scenarios`, or fields with leading axis N).
+        vehicles: true vehicles, batched (leading axis N) or one shared (default Table 1).
+        models: controller models, batched or shared (default: ``vehicles``).
+        unmodeled: `UnmodeledDynamics`, shared or batched (`stack_unmodeled`); None: the
+            paper's closed loop. With digital control and ``"ensemble"``, every group's cases
+            must share one control rate.
+        strategy: ``"ensemble"`` (groups of cases as one ODE system each; default) or
+            ``"vmap"``.
+        solver: diffrax solver or name (as in `simulate`).
+        rtol, atol: tolerances; with ``"ensemble"`` every case meets them (max-over-cases norm).
+        dtype: floating dtype of the solve (default: JAX's default float). ``"vmap"`` supports
+            only the default float dtype.
+        max_steps: step budget (for ``"ensemble"``: shared by a group; per sample interval with
+            digital control).
+        limits: divergence limits (default `DivergenceLimits()`).
+        chunk_size: each device solves its cases this many at a time inside the one compiled
+            call (``jax.lax.map``). None (default): one chunk per device.
+        group_size: ``"ensemble"`` only: groups of this many consecutive cases are separate
+            ensembles (own step sequences), vectorised with ``jax.vmap``. None (default): the
+            whole chunk is one ensemble.
+        n_save: number of equally spaced samples for the peak metrics (0: no peaks, NaN).
+        devices: sequence of devices to split the case axis over (``jax.shard_map``); None
+            (default): all local devices of the default backend.
+
+    Never raises for failed or diverged cases; check ``status``.
+    """
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown strategy {strategy!r}; allowed: {', '.join(STRATEGIES)}.")
+    if not isinstance(controller, AbstractController):
+        raise TypeError(
+            f"simulate_batch: controller must be an AbstractController, got "
+            f"{type(controller).__name__} (give unmodeled settings separately)."
+        )
+    vehicles = QuadrotorParams() if vehicles is None else vehicles
+    models = vehicles if models is None else models
+    limits = DivergenceLimits() if limits is None else limits
+    check_positive("simulate_batch", "rtol", rtol)
+    check_positive("simulate_batch", "atol", atol)
+    if int(max_steps) <= 0:
+        raise ValueError(f"simulate_batch: max_steps must be > 0, got {max_steps}.")
+    for name, v in (("chunk_size", chunk_size), ("group_size", group_size)):
+        if v is not None and (isinstance(v, bool) or int(v) <= 0):
+            raise ValueError(f"simulate_batch: {name} must be an integer > 0 or None, got {v!r}.")
+    if group_size is not None and strategy != "ensemble":
+        raise ValueError("simulate_batch: group_size applies to strategy 'ensemble' only.")
+    if isinstance(n_save, bool) or int(n_save) < 0 or int(n_save) == 1:
+        raise ValueError(f"simulate_batch: n_save must be 0 or >= 2, got {n_save!r}.")
+    devices = tuple(jax.local_devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("simulate_batch: devices must not be empty.")
+    default = jnp.result_type(float)
+    dtype = np.dtype(default if dtype is None else dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"simulate_batch: dtype must be a floating dtype, got {dtype}.")
+    if strategy == "vmap" and dtype != default:
+        raise ValueError(
+            f"simulate_batch: strategy 'vmap' runs in the default float dtype "
+            f"({default}); got dtype {dtype}. Use strategy='ensemble'."
+        )
+    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled)
+    if strategy == "ensemble":
+        for name in ("t0", "t1"):
+            v = concrete(getattr(scenarios, name))
+            if v is not None and not np.all(v == v.reshape(-1)[0]):
+                raise ValueError(
+                    f"simulate_batch: strategy 'ensemble' needs one {name} for all "
+                    f"cases, got values from {v.min()} to {v.max()} [s]."
+                )
+    loop = ClosedLoop.make(controller, unmodeled)
+    if strategy == "ensemble":
+        _check_group_rates(
+            loop,
+            axes["unmodeled"],
+            n,
+            len(devices),
+            None if chunk_size is None else int(chunk_size),
+            None if group_size is None else int(group_size),
+        )
+    inputs = CaseInputs(scenarios, vehicles, models, limits)
+    mask = (
+        ClosedLoop(
+            jax.tree.map(lambda _: axes["controller"], loop.controller),
+            *(
+                jax.tree.map(lambda _: axes["unmodeled"], part)
+                for part in (loop.plant, loop.actuators, loop.aerodynamics, loop.sampling)
+            ),
+        ),
+        CaseInputs(
+            jax.tree.map(lambda _: True, scenarios),
+            jax.tree.map(lambda _: axes["vehicles"], vehicles),
+            jax.tree.map(lambda _: axes["models"], models),
+            jax.tree.map(lambda _: False, limits),
+        ),
+    )
+    args = _cast((loop, inputs), dtype)
+    part, fixed = _partition_cases(args, mask)
+    return _run(
+        part,
+        fixed,
+        n,
+        strategy,
+        get_solver(solver),
+        float(rtol),
+        float(atol),
+        dtype.name,
+        int(max_steps),
+        None if chunk_size is None else int(chunk_size),
+        None if group_size is None else int(group_size),
+        int(n_save),
+        devices,
+    )

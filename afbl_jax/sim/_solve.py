@@ -1,0 +1,348 @@
+"""One case: the closed loop solved by a diffrax adaptive solver (`simulate`).
+
+Continuous control: one `diffrax.diffeqsolve` over [t0, t1] with PID step control clipped onto
+every jump time of the scenario and a divergence event. Digital control: `jax.lax.scan` over
+the sample instants (`afbl_jax.sim.sample_instant`), one adaptive solve per sample interval with
+the held command. Both are pure functions of arrays: `simulate` works under `jax.jit`,
+`jax.vmap` and `jax.grad` (the adjoint is diffrax's `RecursiveCheckpointAdjoint`:
+discretise-then-optimise, the exact gradient of the numerical solution, with checkpointed
+memory; with noise off the digital loop is differentiable too).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._typing import Array, Float, Int, Scalar
+from .._validation import check_positive
+from ..model import AbstractController, QuadrotorParams, UnmodeledDynamics
+from ..scenario import Scenario
+from ._closed_loop import (
+    CaseInputs,
+    ClosedLoop,
+    ClosedLoopState,
+    DivergenceLimits,
+    Held,
+    Signals,
+)
+from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
+from ._status import STATUS_MAX_STEPS, STATUS_OK, status_from
+
+SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8}
+"""Solvers selectable by name (Dopri5 is MATLAB's ode45 pair)."""
+
+
+def get_solver(solver: str | diffrax.AbstractSolver) -> diffrax.AbstractSolver:
+    """A diffrax solver instance from a name in `SOLVERS` (or the instance itself)."""
+    if isinstance(solver, diffrax.AbstractSolver):
+        return solver
+    try:
+        return SOLVERS[solver]()
+    except KeyError:
+        raise ValueError(f"unknown solver {solver!r}; allowed: {', '.join(SOLVERS)}.") from None
+
+
+class SimulationResult(eqx.Module):
+    """Output of `simulate`.
+
+    Trajectory arrays have a leading time axis of length ``n_save`` (empty when n_save = 0);
+    samples after an early stop (divergence) are ``inf``, as diffrax fills them. With digital
+    control the samples are linear interpolations of the states at the control samples (exact
+    there) and ``u_command`` is the held command.
+
+    Attributes:
+        ts: save times [s].
+        plant: plant states, (n_save, 12), layout of the loop's plant (`afbl_jax.model`).
+        controller_state: (n_save, 4).
+        reference, error: r and e = r - q per channel (phi, theta, psi, z), (n_save, 4).
+        u_command, u_applied: inputs (u1, u2, u3, u4) before / after rotor saturation (and
+            motor lag).
+        rotor_speeds: (n_save, 4) [rad/s].
+        disturbance_force: (n_save, 3) [N]; disturbance_torque: (n_save, 3) [N m] (pulses plus
+            aerodynamic wrench).
+        final: closed-loop state at the end of the run (t1, or where it stopped).
+        t_final: time the run ended [s].
+        ise_attitude, ise_altitude, effort, saturation: cost integrals at the end of the run
+            (`COST_LAYOUT`).
+        status: a `Status` code (0 ok, 1 diverged, 2 max_steps reached, 3 solver failure;
+            `status_message` explains each).
+        num_steps, num_accepted_steps, num_rejected_steps: solver statistics (totals over the
+            sample intervals with digital control).
+    """
+
+    ts: Float[Array, " n"]
+    plant: Float[Array, "n 12"]
+    controller_state: Float[Array, "n 4"]
+    reference: Float[Array, "n 4"]
+    error: Float[Array, "n 4"]
+    u_command: Float[Array, "n 4"]
+    u_applied: Float[Array, "n 4"]
+    rotor_speeds: Float[Array, "n 4"]
+    disturbance_force: Float[Array, "n 3"]
+    disturbance_torque: Float[Array, "n 3"]
+    final: ClosedLoopState
+    t_final: Scalar
+    ise_attitude: Scalar
+    ise_altitude: Scalar
+    effort: Scalar
+    saturation: Scalar
+    status: Int[Array, ""]
+    num_steps: Int[Array, ""]
+    num_accepted_steps: Int[Array, ""]
+    num_rejected_steps: Int[Array, ""]
+
+    @property
+    def ok(self) -> Array:
+        return self.status == STATUS_OK
+
+
+def _result(
+    ts, traj: ClosedLoopState, signals: Signals, final: ClosedLoopState, t_final, status, steps
+) -> SimulationResult:
+    return SimulationResult(
+        ts=ts,
+        plant=traj.plant,
+        controller_state=traj.controller,
+        reference=signals.reference,
+        error=signals.error,
+        u_command=signals.u_command,
+        u_applied=signals.u_applied,
+        rotor_speeds=signals.rotor_speeds,
+        disturbance_force=signals.force,
+        disturbance_torque=signals.torque,
+        final=final,
+        t_final=t_final,
+        ise_attitude=final.cost[0],
+        ise_altitude=final.cost[1],
+        effort=final.cost[2],
+        saturation=final.cost[3],
+        status=status,
+        num_steps=steps[0],
+        num_accepted_steps=steps[1],
+        num_rejected_steps=steps[2],
+    )
+
+
+def _stats(sol) -> Array:
+    return jnp.stack(
+        [
+            jnp.asarray(sol.stats[k])
+            for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")
+        ]
+    )
+
+
+def _finite(y: ClosedLoopState) -> Array:
+    return jnp.all(jnp.isfinite(y.cost)) & jnp.all(jnp.isfinite(y.plant))
+
+
+def save_times(scenario: Scenario, n_save: int, dtype) -> Array:
+    """``n_save`` equally spaced times over [t0, t1] [s]."""
+    return scenario.t0 + (scenario.t1 - scenario.t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
+
+
+def step_size_controller(rtol, atol, jump_ts, norm=None) -> diffrax.AbstractStepSizeController:
+    """PID step control (optionally with an ensemble ``norm``) clipped onto ``jump_ts``."""
+    kwargs = {} if norm is None else {"norm": norm}
+    return diffrax.ClipStepSizeController(
+        diffrax.PIDController(rtol=rtol, atol=atol, **kwargs), jump_ts=jump_ts
+    )
+
+
+def _empty(tree, dtype=None):
+    return jax.tree.map(lambda a: jnp.zeros((0, *a.shape), dtype or a.dtype), tree)
+
+
+def _continuous(
+    loop: ClosedLoop, inputs: CaseInputs, solver, rtol, atol, n_save, max_steps, adjoint
+) -> SimulationResult:
+    dtype = jnp.result_type(float)
+    sc = inputs.scenario
+    y0 = loop.initial_state(inputs, dtype)
+    ts = save_times(sc, n_save, dtype) if n_save else None
+    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(loop.vector_field),
+        solver,
+        sc.t0,
+        sc.t1,
+        None,
+        y0,
+        args=(inputs, None),
+        saveat=diffrax.SaveAt(subs=saves),
+        stepsize_controller=step_size_controller(rtol, atol, sc.jump_times()),
+        max_steps=max_steps,
+        event=diffrax.Event(lambda t, y, args, **kw: loop.diverged_at(t, y, args[0])),
+        adjoint=adjoint,
+        throw=False,
+    )
+    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
+    if n_save:
+        save_ts, traj = sol.ts[1], sol.ys[1]
+        signals = jax.vmap(lambda t, y: loop.signals_and_derivative(t, y, inputs)[0])(save_ts, traj)
+    else:
+        save_ts, traj = jnp.zeros((0,), dtype), _empty(y0)
+        signals = _empty(loop.signals_and_derivative(sc.t0, y0, inputs)[0])
+    status = status_from(sol.result, ~_finite(final))
+    return _result(save_ts, traj, signals, final, sol.ts[0][-1], status, _stats(sol))
+
+
+def _digital(
+    loop: ClosedLoop, inputs: CaseInputs, solver, rtol, atol, n_save, max_steps, adjoint
+) -> SimulationResult:
+    dtype = jnp.result_type(float)
+    sc = inputs.scenario
+    y0 = loop.initial_state(inputs, dtype)
+    t0, t1 = sc.t0.astype(dtype), sc.t1.astype(dtype)
+    h = 1.0 / loop.sampling.control_rate.astype(dtype)
+    stepsize = step_size_controller(rtol, atol, sc.jump_times())
+    term = diffrax.ODETerm(loop.vector_field)
+    event = diffrax.Event(lambda t, y, args, **kw: loop.diverged_at(t, y, args[0]))
+
+    def step(carry, k):
+        y, buf, status, t_final, nsteps = carry
+        t_k = sample_time(t0, h, k)
+        alive = (status == STATUS_OK) & (t_k < t1)
+        start = jnp.minimum(t_k, t1)
+        end = jnp.where(alive, jnp.minimum(sample_time(t0, h, k + 1), t1), start)
+        y_in, buf, held, dctrl = sample_instant(loop, k, t_k, y, buf, inputs)
+        sol = diffrax.diffeqsolve(
+            term,
+            solver,
+            start,
+            end,
+            end - start,
+            y_in,
+            args=(inputs, held),
+            saveat=diffrax.SaveAt(t1=True),
+            stepsize_controller=stepsize,
+            max_steps=max_steps,
+            event=event,
+            adjoint=adjoint,
+            throw=False,
+        )
+        y_end = jax.tree.map(lambda a: a[-1], sol.ys)
+        y_end = eqx.tree_at(lambda s: s.controller, y_end, y.controller + h * dctrl)
+        new_status = jnp.where(alive, status_from(sol.result, ~_finite(y_end)), status)
+        y_new = jax.tree.map(lambda a, b: jnp.where(alive, a, b), y_end, y)
+        t_final = jnp.where(alive, sol.ts[-1], t_final)
+        nsteps = nsteps + jnp.where(alive, _stats(sol), 0)
+        out = (y_new, held, t_final) if n_save else None
+        return (y_new, buf, new_status, t_final, nsteps), out
+
+    carry0 = (
+        y0,
+        initial_buffer(loop, y0),
+        jnp.asarray(STATUS_OK, jnp.int32),
+        t0,
+        jnp.zeros(3, jnp.int32),
+    )
+    (final, _, status, t_final, nsteps), outs = jax.lax.scan(
+        step, carry0, jnp.arange(loop.sampling.max_samples, dtype=jnp.int32)
+    )
+    # not enough samples to reach t1: reported like a solver running out of steps
+    status = jnp.where((status == STATUS_OK) & (t_final < t1), STATUS_MAX_STEPS, status)
+    status = status.astype(jnp.int32)
+    if n_save:
+        ys, helds, t_ends = outs
+        ts = save_times(sc, n_save, dtype)
+        states = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a]), y0, ys)
+        traj = interpolate(ts, jnp.concatenate([t0[None], t_ends]), states)
+        held = jax.tree.map(lambda a: a[held_index(ts, t0, h, loop.sampling.max_samples)], helds)
+        signals = jax.vmap(lambda t, y, hd: loop.signals_and_derivative(t, y, inputs, hd)[0])(
+            ts, traj, held
+        )
+        # after an early stop the trajectory is padded with inf, as in the continuous loop
+        dead = ts > t_final
+        traj, signals = jax.tree.map(
+            lambda a: jnp.where(dead.reshape(-1, *([1] * (a.ndim - 1))), jnp.inf, a),
+            (traj, signals),
+        )
+    else:
+        ts, traj = jnp.zeros((0,), dtype), _empty(y0)
+        signals = _empty(
+            loop.signals_and_derivative(
+                t0, y0, inputs, Held(jnp.zeros(4, dtype), jnp.zeros(4, dtype))
+            )[0]
+        )
+    return _result(ts, traj, signals, final, t_final, status, tuple(nsteps))
+
+
+@eqx.filter_jit
+def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint):
+    solve = _digital if loop.digital else _continuous
+    return solve(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
+
+
+def simulate(
+    controller: AbstractController | ClosedLoop,
+    scenario: Scenario,
+    vehicle: QuadrotorParams | None = None,
+    model: QuadrotorParams | None = None,
+    *,
+    solver: str | diffrax.AbstractSolver = "tsit5",
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+    n_save: int = 401,
+    max_steps: int = 16384,
+    limits: DivergenceLimits | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    unmodeled: UnmodeledDynamics | None = None,
+) -> SimulationResult:
+    """Simulate one closed-loop case.
+
+    Args:
+        controller: `FBLPID`, `AFBL` or `AFBLPaper` (gains are dynamic: vmap/grad over them), or
+            a whole `ClosedLoop` (then ``unmodeled`` must be None).
+        scenario: reference, disturbances, payload, wind, initial state, time span.
+        vehicle: true vehicle parameters (default: Table 1, no rotor limits).
+        model: the controller's nominal model (default: ``vehicle``).
+        solver: diffrax solver or name ("tsit5" default, "dopri5" ode45-like, "dopri8").
+        rtol, atol: tolerances of the PID step-size controller.
+        n_save: number of equally spaced save times over [t0, t1] (0: only the end state).
+        max_steps: solver step budget (per sample interval with digital control); exceeding it
+            gives status ``max_steps_reached``, never an exception.
+        limits: divergence limits (default `DivergenceLimits()`): crossing them stops the run
+            with status ``diverged``.
+        adjoint: diffrax adjoint for gradients (default `RecursiveCheckpointAdjoint`).
+        unmodeled: unmodeled dynamics (full rigid-body plant, motor lag, digital control with
+            noise and delay; `afbl_jax.model.UnmodeledDynamics`). None (default): the paper's
+            model with a continuous controller.
+
+    Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
+    """
+    loop = closed_loop_of(controller, unmodeled)
+    vehicle = QuadrotorParams() if vehicle is None else vehicle
+    model = vehicle if model is None else model
+    limits = DivergenceLimits() if limits is None else limits
+    check_positive("simulate", "rtol", rtol)
+    check_positive("simulate", "atol", atol)
+    if int(n_save) < 0 or int(max_steps) <= 0:
+        raise ValueError(f"n_save must be >= 0 and max_steps > 0, got {n_save}, {max_steps}.")
+    return _simulate(
+        loop,
+        CaseInputs(scenario, vehicle, model, limits),
+        get_solver(solver),
+        float(rtol),
+        float(atol),
+        int(n_save),
+        int(max_steps),
+        adjoint or diffrax.RecursiveCheckpointAdjoint(),
+    )
+
+
+def closed_loop_of(controller, unmodeled=None) -> ClosedLoop:
+    """The `ClosedLoop` a `simulate` call describes (a controller plus optional settings)."""
+    if isinstance(controller, ClosedLoop):
+        if unmodeled is not None:
+            raise ValueError("give either a ClosedLoop or unmodeled settings, not both.")
+        return controller
+    if not isinstance(controller, AbstractController):
+        raise TypeError(
+            f"controller must be an AbstractController or a ClosedLoop, got "
+            f"{type(controller).__name__}."
+        )
+    return ClosedLoop.make(controller, unmodeled)

@@ -1,0 +1,553 @@
+"""Throughput benchmark of batched solving (`afbl bench`).
+
+Case: the canonical uncertain-step scenario with the AFBL paper gains, 20 s, rtol 1e-6,
+atol 1e-8, Tsit5 (scipy: RK45). So that the accuracy check is meaningful, every case differs:
+payload fraction p ~ U[0, 0.5], torque-pulse and force-pulse amplitudes scaled by U[0.5, 1.5]
+each (`bench_cases`). Accuracy: max over ok cases and over (ise_attitude, ise_altitude) of
+|ISE - ISE_ref| / ISE_ref, with ISE_ref from an x64 Dopri8 ensemble at rtol 1e-10, atol 1e-12
+(itself cross-checked against per-case `simulate` on the first cases: ``reference_check``).
+
+Strategies (rows of bench.json):
+
+- ``scipy_rk45_loop``: `scipy.integrate.solve_ivp` (RK45, same rtol/atol) with a NumPy RHS,
+  one case after the other: the baseline a user would otherwise write (measured on a subset of
+  cases; sims/s does not depend on N).
+- ``diffrax_loop``: a Python loop over one jitted `simulate` (n_save=0) per case (subset).
+- ``vmap``, ``ensemble``: `simulate_batch` strategies, float64.
+- ``ensemble_f32``: the ensemble in float32 at rtol 1e-5, atol 1e-6 (float32 cannot resolve
+  1e-8 absolute / 1e-6 relative steps reliably; the measured error is in the row).
+- ``ensemble_f32_chunked``: the same, each device solving its cases as consecutive chunks of
+  128 inside one compiled call (``simulate_batch(chunk_size=128)``): the per-step working set
+  then stays in cache (rows with N <= 128 per device are the unchunked ensemble).
+- ``montecarlo_default``: exactly what ``afbl montecarlo`` runs by default per chunk (strategy
+  ``ensemble_f32``: float32, groups of 4 cases, 128 cases per device at a time, 401 saved
+  samples for the peak metrics, rtol 3e-6, atol 3e-7); ``montecarlo_default_1dev``: the same on
+  one device (one core), for a per-core comparison with the single-core scipy loop.
+- ``montecarlo_default_unmodeled``: the same Monte-Carlo default on a realistic vehicle: full
+  rigid-body plant, first-order motor lag tau_m = 30 ms, digital control at 250 Hz with a
+  one-sample measurement delay (noise off). Its accuracy is measured against an x64 Dopri8
+  reference of the same loop; its ratio to the scipy loop (which simulates the paper's loop)
+  says what a realistic vehicle costs, not a like-for-like speed-up.
+
+Every batched row splits the cases over all local devices (``devices`` in the row) except
+``montecarlo_default_1dev``; ``afbl bench`` starts with one XLA CPU device per core
+(`afbl_jax.configure_cpu_devices`).
+
+Memory: ``peak_rss_delta_mb`` is the growth of the process's peak resident set size
+(``resource.getrusage`` max RSS, which includes compilation) during the row; it is 0 when the
+row stays below an earlier peak, so it is a lower bound (rows run in increasing N).
+
+bench.json is a list of rows; every row carries the same ``meta`` block (config, seed, versions,
+git revision: `afbl_jax._meta.run_metadata`).
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ..io import run_metadata
+from ..metrics import BatchMetrics
+from ..model import AFBL, UnmodeledDynamics
+from ..scenario import PulseDisturbance, Scenario, paper_scenario
+from ..sim import STATUS_OK, simulate, simulate_batch
+
+DEFAULT_SIZES = (64, 1024, 4096, 16384)
+CHUNK = 128
+
+
+REALISTIC_VEHICLE = {"plant": "full", "motor_tau": 0.03, "control_rate": 250.0, "delay_samples": 1}
+"""The realistic-vehicle settings of the ``montecarlo_default_unmodeled`` row."""
+
+
+def realistic_unmodeled(duration: float = 20.0) -> UnmodeledDynamics:
+    """`UnmodeledDynamics` of the ``montecarlo_default_unmodeled`` row (`REALISTIC_VEHICLE`)."""
+    return UnmodeledDynamics.make(duration=duration, **REALISTIC_VEHICLE)
+
+
+def _mc_default(one_device: bool, unmodeled: bool = False) -> dict:
+    from .montecarlo import BATCH_SETTINGS, DEFAULT_STRATEGY, STRATEGY_TOLERANCES, SolverSettings
+
+    rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
+    return {
+        **BATCH_SETTINGS[DEFAULT_STRATEGY],
+        "rtol": rtol,
+        "atol": atol,
+        "n_save": SolverSettings().n_save,
+        "one_device": one_device,
+        "always": True,
+        "unmodeled": unmodeled,
+    }
+
+
+BATCH_STRATEGIES = {
+    # name: simulate_batch settings ("always": measure even when chunking changes nothing)
+    "vmap": {"strategy": "vmap", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
+    "ensemble": {"strategy": "ensemble", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
+    "ensemble_f32": {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5, "atol": 1e-6},
+    "ensemble_f32_chunked": {
+        "strategy": "ensemble",
+        "dtype": "float32",
+        "rtol": 1e-5,
+        "atol": 1e-6,
+        "chunk_size": CHUNK,
+    },
+    "montecarlo_default": _mc_default(False),
+    "montecarlo_default_1dev": _mc_default(True),
+    "montecarlo_default_unmodeled": _mc_default(False, unmodeled=True),
+}
+LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
+ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES)
+REFERENCE = {"solver": "dopri8", "rtol": 1e-10, "atol": 1e-12, "dtype": "float64"}
+
+
+# --------------------------------------------------------------------------- cases
+
+
+def bench_cases(n: int, seed: int = 0) -> tuple[Scenario, np.ndarray]:
+    """N uncertain-step cases (batched `Scenario`) and their numbers (n, 3): payload fraction,
+    torque-pulse scale, force-pulse scale."""
+    base = paper_scenario("uncertain", "step")
+    rng = np.random.default_rng(seed)
+    draws = np.stack(
+        [rng.uniform(0.0, 0.5, n), rng.uniform(0.5, 1.5, n), rng.uniform(0.5, 1.5, n)], axis=1
+    )
+
+    def tile(x):
+        x = np.asarray(x)
+        return np.broadcast_to(x, (n, *x.shape)).copy()
+
+    d = base.disturbance
+    disturbance = PulseDisturbance(
+        start=tile(d.start),
+        duration=tile(d.duration),
+        torque=tile(d.torque) * draws[:, 1, None, None],
+        force=tile(d.force) * draws[:, 2, None, None],
+    )
+    reference = jax.tree.map(tile, base.reference)
+    scenarios = Scenario(
+        reference=reference,
+        disturbance=disturbance,
+        payload_fraction=draws[:, 0],
+        payload_time=tile(base.payload_time),
+        initial_state=tile(base.initial_state),
+        t0=tile(base.t0),
+        t1=tile(base.t1),
+        wind=jax.tree.map(tile, base.wind),
+    )
+    return scenarios, draws
+
+
+# --------------------------------------------------------------------------- numpy baseline
+# Adapted from tests/numpy_reference.py (the independent NumPy closed loop), AFBL only, step
+# profile, with per-case payload and pulse amplitudes.
+
+_P = {
+    "m": 0.650,
+    "Ix": 7.5e-3,
+    "Iy": 7.5e-3,
+    "Iz": 1.3e-2,
+    "b": 3.13e-5,
+    "d": 7.5e-7,
+    "Jr": 6e-5,
+    "l": 0.23,
+    "g": 9.81,
+}
+_STEPS = (
+    (3, 1.0, 1.0),
+    (3, 16.0, -1.0),
+    (0, 4.0, 0.1),
+    (0, 8.0, -0.1),
+    (1, 6.0, -0.1),
+    (1, 10.0, 0.1),
+    (2, 8.0, 0.2),
+    (2, 12.0, -0.2),
+)
+
+
+def _numpy_rhs(t, y, mass_factor, torque, force_z, gamma, k, lam):
+    p = _P
+    r, rd, rdd = np.zeros(4), np.zeros(4), np.zeros(4)
+    for ch, t0, delta in _STEPS:
+        tau = t - t0
+        if 0.0 < tau < 1.0:
+            r[ch] += delta * tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
+            rd[ch] += delta * 30.0 * tau**2 * (1.0 - tau) ** 2
+            rdd[ch] += delta * 60.0 * tau * (1.0 - 3.0 * tau + 2.0 * tau**2)
+        elif tau >= 1.0:
+            r[ch] += delta
+    plant, dhat = y[:12], y[12:16]
+    q = plant[[3, 4, 5, 2]]
+    qd = plant[[9, 10, 11, 8]]
+    e, ed = r - q, rd - qd
+    s = ed + lam * e
+    v = rdd + lam * ed - dhat + k * s
+    phi, theta, psi = plant[3:6]
+    phid, thetad, psid = plant[9:12]
+    ix, iy, iz, arm, b, d = p["Ix"], p["Iy"], p["Iz"], p["l"], p["b"], p["d"]
+    u = np.array(
+        [
+            (ix / arm) * (v[0] - thetad * psid * (iy - iz) / ix),
+            (iy / arm) * (v[1] - phid * psid * (iz - ix) / iy),
+            iz * (v[2] - phid * thetad * (ix - iy) / iz),
+            p["m"] * (p["g"] + v[3]) / (np.cos(phi) * np.cos(theta)),
+        ]
+    )
+    w = np.maximum(
+        np.array(
+            [
+                u[3] / (4 * b) - u[1] / (2 * b) - u[2] / (4 * d),
+                u[3] / (4 * b) - u[0] / (2 * b) + u[2] / (4 * d),
+                u[3] / (4 * b) + u[1] / (2 * b) - u[2] / (4 * d),
+                u[3] / (4 * b) + u[0] / (2 * b) + u[2] / (4 * d),
+            ]
+        ),
+        0.0,
+    )
+    U = np.array(
+        [b * (w[3] - w[1]), b * (w[2] - w[0]), d * (w[1] + w[3] - w[0] - w[2]), b * w.sum()]
+    )
+    om = np.sqrt(w)
+    od = -om[0] + om[1] - om[2] + om[3]
+    tq = torque if 10.0 <= t < 11.0 else np.zeros(3)
+    fz = force_z if 12.0 <= t < 13.0 else 0.0
+    m = p["m"] * mass_factor
+    cphi, sphi, cth, sth = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
+    cpsi, spsi = np.cos(psi), np.sin(psi)
+    dy = np.empty(20)
+    dy[0:6] = plant[6:12]
+    dy[6] = (cphi * sth * cpsi + sphi * spsi) * U[3] / m
+    dy[7] = (cphi * sth * spsi - sphi * cpsi) * U[3] / m
+    dy[8] = -p["g"] + cphi * cth * U[3] / m + fz / m
+    dy[9] = (
+        thetad * psid * (iy - iz) / ix - (p["Jr"] / ix) * thetad * od + arm * U[0] / ix + tq[0] / ix
+    )
+    dy[10] = (
+        phid * psid * (iz - ix) / iy + (p["Jr"] / iy) * phid * od + arm * U[1] / iy + tq[1] / iy
+    )
+    dy[11] = phid * thetad * (ix - iy) / iz + U[2] / iz + tq[2] / iz
+    dy[12:16] = -s / gamma
+    dy[16] = e[0] ** 2 + e[1] ** 2 + e[2] ** 2
+    dy[17] = e[3] ** 2
+    dy[18:20] = 0.0
+    return dy
+
+
+def scipy_loop(draws: np.ndarray, rtol: float = 1e-6, atol: float = 1e-8) -> np.ndarray:
+    """(n, 2) ISE (attitude, altitude) of each case by `solve_ivp` RK45 with a NumPy RHS."""
+    try:
+        from scipy.integrate import solve_ivp
+    except ImportError:
+        raise ValueError(
+            "the scipy_rk45_loop baseline needs scipy (pip install scipy, or "
+            "leave it out of --strategies)."
+        ) from None
+
+    ctrl = AFBL()
+    gamma, k, lam = (np.asarray(getattr(ctrl, g)) for g in ("gamma", "k", "lam"))
+    y0 = np.zeros(20)
+    y0[:12] = np.asarray(paper_scenario("uncertain", "step").initial_state)
+    out = np.empty((len(draws), 2))
+    for i, (p, ts, fs) in enumerate(draws):
+        sol = solve_ivp(
+            _numpy_rhs,
+            (0.0, 20.0),
+            y0,
+            method="RK45",
+            rtol=rtol,
+            atol=atol,
+            args=(1.0 + p, ts * np.array([0.01, 0.01, 0.01]), fs * -2.0, gamma, k, lam),
+        )
+        out[i] = sol.y[16:18, -1] if sol.success else np.nan
+    return out
+
+
+# --------------------------------------------------------------------------- measurement
+
+
+def _index(tree, sl):
+    return jax.tree.map(lambda x: x[sl], tree)
+
+
+def _rel_error(ise: np.ndarray, ref: np.ndarray, ok: np.ndarray) -> float:
+    """Max over ok cases of |ise - ref| / |ref| (ise, ref: (n, 2)); inf if no case is ok."""
+    if not np.any(ok):
+        return float("inf")
+    return float(np.max(np.abs(ise[ok] - ref[ok]) / np.abs(ref[ok])))
+
+
+def _ise(m: BatchMetrics) -> np.ndarray:
+    return np.stack(
+        [np.asarray(m.ise_attitude, np.float64), np.asarray(m.ise_altitude, np.float64)], axis=1
+    )
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
+
+
+def reference_ise(scenarios: Scenario, chunk: int = 4096, unmodeled=None) -> np.ndarray:
+    """(n, 2) tight-tolerance x64 reference ISE (Dopri8 ensemble, rtol 1e-10, atol 1e-12)."""
+    n = scenarios.t0.shape[0]
+    parts = []
+    for a in range(0, n, chunk):
+        m = simulate_batch(
+            AFBL(),
+            _index(scenarios, slice(a, a + chunk)),
+            strategy="ensemble",
+            solver=REFERENCE["solver"],
+            rtol=REFERENCE["rtol"],
+            atol=REFERENCE["atol"],
+            dtype="float64",
+            unmodeled=unmodeled,
+        )
+        if not np.all(np.asarray(m.status) == STATUS_OK):
+            raise RuntimeError("bench reference solve failed for some cases")
+        parts.append(_ise(m))
+    return np.concatenate(parts)
+
+
+def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
+    """One row: run twice (compile + run, then run), time the second call."""
+    cfg = BATCH_STRATEGIES[name]
+    unmodeled = realistic_unmodeled() if cfg.get("unmodeled") else None
+    n = scenarios.t0.shape[0]
+    devices = jax.local_devices()[:1] if cfg.get("one_device") else jax.local_devices()
+    rss0 = _rss_mb()
+
+    def call():
+        return jax.block_until_ready(
+            simulate_batch(
+                AFBL(),
+                scenarios,
+                strategy=cfg["strategy"],
+                rtol=cfg["rtol"],
+                atol=cfg["atol"],
+                dtype=cfg["dtype"],
+                chunk_size=cfg.get("chunk_size"),
+                group_size=cfg.get("group_size"),
+                n_save=cfg.get("n_save", 0),
+                devices=devices,
+                unmodeled=unmodeled,
+            )
+        )
+
+    t = time.perf_counter()
+    call()
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    m = call()
+    run = time.perf_counter() - t
+    k = min(n, len(ref))  # accuracy over the first k cases (those with a reference)
+    ok = np.asarray(m.status)[:k] == STATUS_OK
+    return {
+        "strategy": name,
+        "N": n,
+        "dtype": cfg["dtype"],
+        "rtol": cfg["rtol"],
+        "atol": cfg["atol"],
+        "chunk_size": cfg.get("chunk_size"),
+        "group_size": cfg.get("group_size"),
+        "n_save": cfg.get("n_save", 0),
+        "devices": len(devices),
+        "unmodeled": REALISTIC_VEHICLE if unmodeled else None,
+        "sims_per_s": n / run,
+        "seconds": run,
+        "compile_s": max(first - run, 0.0),
+        "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+        "max_rel_ise_error": _rel_error(_ise(m)[:k], ref[:k], ok),
+        "error_cases": k,
+        "n_ok": int(np.sum(np.asarray(m.status) == STATUS_OK)),
+        "num_steps_max": int(np.max(np.asarray(m.num_steps))),
+    }
+
+
+def measure_diffrax_loop(scenarios: Scenario, ref: np.ndarray) -> dict:
+    n = scenarios.t0.shape[0]
+    ctrl, rss0 = AFBL(), _rss_mb()
+
+    def one(i):
+        r = simulate(ctrl, _index(scenarios, i), rtol=1e-6, atol=1e-8, n_save=0)
+        return jax.block_until_ready(r)
+
+    t = time.perf_counter()
+    one(0)
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    results = [one(i) for i in range(n)]
+    run = time.perf_counter() - t
+    ise = np.array([[float(r.ise_attitude), float(r.ise_altitude)] for r in results])
+    ok = np.array([int(r.status) == STATUS_OK for r in results])
+    return {
+        "strategy": "diffrax_loop",
+        "N": n,
+        "dtype": "float64",
+        "rtol": 1e-6,
+        "atol": 1e-8,
+        "sims_per_s": n / run,
+        "seconds": run,
+        "compile_s": max(first - run / n, 0.0),
+        "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+        "max_rel_ise_error": _rel_error(ise, ref, ok),
+        "n_ok": int(ok.sum()),
+        "num_steps_max": int(max(int(r.num_steps) for r in results)),
+        "devices": 1,
+    }
+
+
+def measure_scipy(draws: np.ndarray, ref: np.ndarray) -> dict:
+    rss0 = _rss_mb()
+    t = time.perf_counter()
+    ise = scipy_loop(draws)
+    run = time.perf_counter() - t
+    ok = np.all(np.isfinite(ise), axis=1)
+    return {
+        "strategy": "scipy_rk45_loop",
+        "N": len(draws),
+        "dtype": "float64",
+        "rtol": 1e-6,
+        "atol": 1e-8,
+        "sims_per_s": len(draws) / run,
+        "seconds": run,
+        "compile_s": 0.0,
+        "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+        "max_rel_ise_error": _rel_error(ise, ref, ok),
+        "n_ok": int(ok.sum()),
+        "num_steps_max": None,
+        "devices": 1,
+    }
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What `run_benchmark` measures (see the module docstring).
+
+    Attributes:
+        out: output folder (bench.json, bench.png).
+        sizes: batch sizes N of the batched rows.
+        strategies: rows to measure (`ALL_STRATEGIES`).
+        scipy_cases, loop_cases: cases of the per-case loops (sims/s does not depend on N).
+        ref_cases: cases with a tight x64 reference (accuracy on the first min(N, ref_cases)).
+        seed: seed of the cases.
+    """
+
+    out: Path
+    sizes: tuple = DEFAULT_SIZES
+    strategies: tuple = ALL_STRATEGIES
+    scipy_cases: int = 16
+    loop_cases: int = 64
+    ref_cases: int = 4096
+    seed: int = 0
+
+
+def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> list[dict]:
+    """Measure every strategy; write OUT/bench.json and OUT/bench.png; return the rows."""
+    out, sizes, strategies = config.out, config.sizes, config.strategies
+    scipy_cases, loop_cases, ref_cases = config.scipy_cases, config.loop_cases, config.ref_cases
+    seed = config.seed
+    unknown = set(strategies) - set(ALL_STRATEGIES)
+    if unknown:
+        raise ValueError(
+            f"unknown strategies {sorted(unknown)}; allowed: {', '.join(ALL_STRATEGIES)}."
+        )
+    if not sizes or any(int(s) <= 0 for s in sizes):
+        raise ValueError(f"sizes must be positive integers, got {list(sizes)}.")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    n_max = max(max(sizes), scipy_cases, loop_cases)
+    scenarios, draws = bench_cases(n_max, seed)
+    n_ref = max(min(n_max, ref_cases), scipy_cases, loop_cases)
+    log(f"reference: {n_ref} cases, x64 Dopri8 rtol 1e-10 ...")
+    ref = reference_ise(_index(scenarios, slice(0, n_ref)))
+    # independent check of the reference: per-case simulate, Dopri8 tight
+    k = min(4, n_max)
+    direct = np.array(
+        [
+            [float(r.ise_attitude), float(r.ise_altitude)]
+            for r in (
+                simulate(
+                    AFBL(), _index(scenarios, i), solver="dopri8", rtol=1e-10, atol=1e-12, n_save=0
+                )
+                for i in range(k)
+            )
+        ]
+    )
+    reference_check = _rel_error(direct, ref[:k], np.ones(k, bool))
+    ref_unmodeled = None
+    if any(BATCH_STRATEGIES[s].get("unmodeled") for s in strategies if s in BATCH_STRATEGIES):
+        log(f"reference of the realistic vehicle: {n_ref} cases, x64 Dopri8 rtol 1e-10 ...")
+        ref_unmodeled = reference_ise(
+            _index(scenarios, slice(0, n_ref)), unmodeled=realistic_unmodeled()
+        )
+    rows: list[dict] = []
+    if "scipy_rk45_loop" in strategies:
+        log(f"scipy_rk45_loop on {scipy_cases} cases ...")
+        rows.append(measure_scipy(draws[:scipy_cases], ref[:scipy_cases]))
+    if "diffrax_loop" in strategies:
+        log(f"diffrax_loop on {loop_cases} cases ...")
+        rows.append(measure_diffrax_loop(_index(scenarios, slice(0, loop_cases)), ref[:loop_cases]))
+    for n in sorted(int(s) for s in sizes):
+        for name, cfg in BATCH_STRATEGIES.items():
+            chunk = cfg.get("chunk_size")
+            if (
+                chunk is not None
+                and not cfg.get("always")
+                and n <= chunk * len(jax.local_devices())
+            ):
+                continue  # identical to the unchunked row
+            if name in strategies:
+                log(f"{name} N={n} ...")
+                row_ref = ref_unmodeled if cfg.get("unmodeled") else ref
+                rows.append(measure_batch(name, _index(scenarios, slice(0, n)), row_ref))
+                log(
+                    f"  {rows[-1]['sims_per_s']:.1f} sims/s, err "
+                    f"{rows[-1]['max_rel_ise_error']:.2e}"
+                )
+    base = next((r["sims_per_s"] for r in rows if r["strategy"] == "scipy_rk45_loop"), None)
+    for r in rows:
+        r["ratio_to_scipy"] = None if base is None else r["sims_per_s"] / base
+    meta = run_metadata(
+        {
+            "sizes": sorted(int(s) for s in sizes),
+            "strategies": list(strategies),
+            "scipy_cases": scipy_cases,
+            "loop_cases": loop_cases,
+            "ref_cases": n_ref,
+            "seed": seed,
+            "case": "paper_scenario('uncertain','step'), AFBL paper gains, 20 s; payload fraction "
+            "U[0,0.5], torque/force pulse scales U[0.5,1.5]",
+            "reference": REFERENCE,
+            "reference_check_max_rel_error": reference_check,
+        }
+    )
+    for r in rows:
+        r["meta"] = meta
+    (out / "bench.json").write_text(json.dumps(rows, indent=2))
+    from ..plotting.bench import plot_benchmark
+
+    plot_benchmark(rows, out / "bench.png", tuple(BATCH_STRATEGIES))
+    return rows
+
+
+def format_rows(rows: list[dict]) -> str:
+    head = (
+        f"{'strategy':<24}{'N':>7}{'dev':>4}{'dtype':>9}{'sims/s':>11}{'x scipy':>9}"
+        f"{'compile s':>11}{'rss MB':>8}{'max rel err':>13}"
+    )
+    lines = [head]
+    for r in rows:
+        ratio = "-" if r["ratio_to_scipy"] is None else f"{r['ratio_to_scipy']:.1f}"
+        lines.append(
+            f"{r['strategy']:<24}{r['N']:>7}{r['devices']:>4}{r['dtype']:>9}"
+            f"{r['sims_per_s']:>11.1f}"
+            f"{ratio:>9}{r['compile_s']:>11.1f}{r['peak_rss_delta_mb']:>8.0f}"
+            f"{r['max_rel_ise_error']:>13.2e}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,30 @@
+"""Monte-Carlo robustness study: case distribution, sampler, chunked runner, reports."""
+
+from ._distribution import DEFAULT_DISTRIBUTION as DEFAULT_DISTRIBUTION
+from ._distribution import Distribution as Distribution
+from ._distribution import default_distribution as default_distribution
+from ._distribution import load_distribution as load_distribution
+from ._report import format_summary as format_summary
+from ._report import summarize as summarize
+from ._report import wilson_interval as wilson_interval
+from ._report import write_report as write_report
+from ._runner import BATCH_SETTINGS as BATCH_SETTINGS
+from ._runner import DEFAULT_STRATEGY as DEFAULT_STRATEGY
+from ._runner import INNER_CHUNK as INNER_CHUNK
+from ._runner import RESULTS_FILE as RESULTS_FILE
+from ._runner import STRATEGIES as STRATEGIES
+from ._runner import STRATEGY_TOLERANCES as STRATEGY_TOLERANCES
+from ._runner import SolverSettings as SolverSettings
+from ._runner import merge_results as merge_results
+from ._runner import register_strategy as register_strategy
+from ._runner import resolve_strategy as resolve_strategy
+from ._runner import run_chunk as run_chunk
+from ._runner import run_montecarlo as run_montecarlo
+from ._sampler import GROUP_SIZE as GROUP_SIZE
+from ._sampler import INPUT_COLUMNS as INPUT_COLUMNS
+from ._sampler import UNMODELED_COLUMNS as UNMODELED_COLUMNS
+from ._sampler import CaseBatch as CaseBatch
+from ._sampler import sample_cases as sample_cases
+from ._study import StudyConfig as StudyConfig
+from ._study import merge_study as merge_study
+from ._study import run_study as run_study

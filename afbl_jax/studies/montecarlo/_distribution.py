@@ -1,0 +1,293 @@
+"""The Monte-Carlo case distribution: written once here, overridable from a TOML or JSON file.
+
+A distribution file has the same sections and keys as `DEFAULT_DISTRIBUTION`; every key it
+gives replaces the default, every key it leaves out keeps the default. A range ``[low, high]``
+is sampled uniformly (``[x, x]`` fixes the value). Probability tables are categorical
+distributions (non-negative weights summing to 1). Unknown sections or keys, ranges with
+high < low, and values outside their physical domain raise `ValueError` naming the key.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ...scenario import TURBULENCE_INTENSITIES
+
+DEFAULT_DISTRIBUTION: dict = {
+    "payload": {
+        "fraction": [0.0, 0.5],  # p, true mass (1 + p) m
+        "attach_time": [0.0, 0.0],  # [s]; 0 = carried from the start, e.g. [5, 15] mid-flight
+    },
+    "model_error": {  # true vehicle = nominal model x these factors
+        "inertia_scale": [0.9, 1.1],  # Ix, Iy, Iz
+        "thrust_coefficient_scale": [0.9, 1.1],  # b
+        "drag_coefficient_scale": [0.9, 1.1],  # d (rotor yaw-torque coefficient)
+        "thrust_to_weight": [2.5, 2.5],  # omega_max set for this ratio at nominal mass and b
+    },
+    "aero": {
+        "drag_coefficient": [0.1, 0.3],  # linear drag c_d [N s/m]
+        "cp_offset": [0.0, 0.03],  # centre of pressure above the centre of mass [m]
+    },
+    "pulses": {  # the paper's rectangular disturbance pulses
+        "enabled": True,
+        "torque": [-0.02, 0.02],  # [N m], each of phi, theta, psi
+        "vertical_force": [-3.0, 3.0],  # [N]
+        "start": [2.0, 16.0],  # [s], torque and force pulse sampled independently
+        "duration": [0.2, 2.0],  # [s]
+    },
+    "gust": {  # one MIL-F-8785C 1-cosine gust per case
+        "enabled": True,
+        "horizontal_amplitude": [0.0, 6.0],  # |A_x|, |A_y| [m/s], random sign
+        "vertical_amplitude": [0.0, 2.0],  # |A_z| [m/s], random sign
+        "buildup_time": [0.5, 3.0],  # per axis [s]
+        "start": [2.0, 16.0],  # [s]
+    },
+    "turbulence": {  # Dryden, MIL-HDBK-1797 low altitude, sum of sinusoids
+        "enabled": True,
+        "intensity_probabilities": {"none": 0.0, "light": 0.5, "moderate": 0.35, "severe": 0.15},
+        "airspeed": 5.0,  # [m/s] mean-wind speed that carries the frozen turbulence field
+        "altitude": 10.0,  # [m]
+        "n_frequencies": 32,
+        "omega_min": 0.005,  # [rad/s]
+        "omega_max": 20.0,  # [rad/s]
+    },
+    "initial": {
+        "attitude": [-0.1, 0.1],  # phi, theta, psi at t0 [rad]
+        "rate": [-0.1, 0.1],  # their rates [rad/s]
+    },
+    "reference": {"profile_probabilities": {"step": 0.5, "sine": 0.5}},
+    "time": {"t1": 20.0},  # [s], runs start at t0 = 0
+    "unmodeled": {  # afbl_jax.UnmodeledDynamics per case; off = the paper's closed loop
+        "enabled": False,
+        "plant": "paper",  # "paper" (eq. 15) or "full" (rigid body), shared by all cases
+        "motor_tau": [0.0, 0.0],  # rotor time constant tau_m [s]; 0 = instantaneous
+        "control_rate": [0.0, 0.0],  # controller rate f_c [Hz]; [0, 0] = continuous controller
+        "delay_samples": [0, 0],  # measurement delay [whole samples], integers, inclusive
+        "noise_angle": [0.0, 0.0],  # std of measured phi, theta, psi [rad]
+        "noise_rate": [0.0, 0.0],  # std of measured angle rates [rad/s]
+        "noise_altitude": [0.0, 0.0],  # std of measured z [m]
+        "noise_vertical_speed": [0.0, 0.0],  # std of measured zd [m/s]
+    },
+}
+
+# key -> (kind, lower bound or None, bound inclusive?)
+_RANGE_RULES = {
+    ("payload", "fraction"): (-1.0, False),
+    ("payload", "attach_time"): (0.0, True),
+    ("model_error", "inertia_scale"): (0.0, False),
+    ("model_error", "thrust_coefficient_scale"): (0.0, False),
+    ("model_error", "drag_coefficient_scale"): (0.0, False),
+    ("model_error", "thrust_to_weight"): (1.0, False),
+    ("aero", "drag_coefficient"): (0.0, True),
+    ("aero", "cp_offset"): (None, True),
+    ("pulses", "torque"): (None, True),
+    ("pulses", "vertical_force"): (None, True),
+    ("pulses", "start"): (0.0, True),
+    ("pulses", "duration"): (0.0, True),
+    ("gust", "horizontal_amplitude"): (0.0, True),
+    ("gust", "vertical_amplitude"): (0.0, True),
+    ("gust", "buildup_time"): (0.0, False),
+    ("gust", "start"): (0.0, True),
+    ("initial", "attitude"): (-1.2, False),
+    ("initial", "rate"): (None, True),
+    ("unmodeled", "motor_tau"): (0.0, True),
+    ("unmodeled", "control_rate"): (0.0, True),
+    ("unmodeled", "delay_samples"): (0.0, True),
+    ("unmodeled", "noise_angle"): (0.0, True),
+    ("unmodeled", "noise_rate"): (0.0, True),
+    ("unmodeled", "noise_altitude"): (0.0, True),
+    ("unmodeled", "noise_vertical_speed"): (0.0, True),
+}
+_PROB_RULES = {
+    ("turbulence", "intensity_probabilities"): TURBULENCE_INTENSITIES,
+    ("reference", "profile_probabilities"): ("step", "sine"),
+}
+_BOOL_KEYS = {
+    ("pulses", "enabled"),
+    ("gust", "enabled"),
+    ("turbulence", "enabled"),
+    ("unmodeled", "enabled"),
+}
+_INT_RANGE_KEYS = {("unmodeled", "delay_samples")}
+_CHOICE_KEYS = {("unmodeled", "plant"): ("paper", "full")}
+_POSITIVE_KEYS = {
+    ("turbulence", "airspeed"),
+    ("turbulence", "altitude"),
+    ("turbulence", "omega_min"),
+    ("turbulence", "omega_max"),
+    ("time", "t1"),
+}
+_INT_KEYS = {("turbulence", "n_frequencies")}
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _validate(spec: dict, source: str) -> None:
+    if not isinstance(spec, dict):
+        raise ValueError(f"{source}: expected a table/object of sections, got {type(spec)}.")
+    for section, body in spec.items():
+        if section not in DEFAULT_DISTRIBUTION:
+            raise ValueError(
+                f"{source}: unknown section [{section}]; allowed: "
+                f"{', '.join(DEFAULT_DISTRIBUTION)}."
+            )
+        if not isinstance(body, dict):
+            raise ValueError(f"{source}: [{section}] must be a table of keys, got {body!r}.")
+        for key, value in body.items():
+            where = f"{source}: {section}.{key}"
+            if key not in DEFAULT_DISTRIBUTION[section]:
+                raise ValueError(
+                    f"{where} is not a known key; allowed in [{section}]: "
+                    f"{', '.join(DEFAULT_DISTRIBUTION[section])}."
+                )
+            k = (section, key)
+            if k in _RANGE_RULES:
+                if (
+                    not isinstance(value, list | tuple)
+                    or len(value) != 2
+                    or not all(_is_number(v) for v in value)
+                ):
+                    raise ValueError(
+                        f"{where} must be a range [low, high] of two finite numbers, got {value!r}."
+                    )
+                lo, hi = value
+                if hi < lo:
+                    raise ValueError(
+                        f"{where} = {list(value)} is a negative range "
+                        "(high < low); write [low, high]."
+                    )
+                bound, inclusive = _RANGE_RULES[k]
+                if bound is not None and (lo < bound or (lo == bound and not inclusive)):
+                    rel = ">=" if inclusive else ">"
+                    raise ValueError(f"{where} = {list(value)}: values must be {rel} {bound}.")
+                if k in _INT_RANGE_KEYS and not all(
+                    isinstance(v, int) or float(v).is_integer() for v in value
+                ):
+                    raise ValueError(f"{where} = {list(value)}: values must be whole numbers.")
+            elif k in _CHOICE_KEYS:
+                if value not in _CHOICE_KEYS[k]:
+                    raise ValueError(
+                        f"{where} must be one of {', '.join(_CHOICE_KEYS[k])}, got {value!r}."
+                    )
+            elif k in _PROB_RULES:
+                names = _PROB_RULES[k]
+                if not isinstance(value, dict) or set(value) - set(names):
+                    raise ValueError(
+                        f"{where} must be a table with keys from {', '.join(names)}, got {value!r}."
+                    )
+                if not all(_is_number(v) and v >= 0 for v in value.values()):
+                    raise ValueError(f"{where}: probabilities must be numbers >= 0, got {value!r}.")
+                if not math.isclose(sum(value.values()), 1.0, abs_tol=1e-9):
+                    raise ValueError(
+                        f"{where}: probabilities must sum to 1, got {sum(value.values())}."
+                    )
+            elif k in _BOOL_KEYS:
+                if not isinstance(value, bool):
+                    raise ValueError(f"{where} must be true or false, got {value!r}.")
+            elif k in _INT_KEYS:
+                if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                    raise ValueError(f"{where} must be an integer >= 1, got {value!r}.")
+            elif k in _POSITIVE_KEYS:
+                if not _is_number(value) or value <= 0:
+                    raise ValueError(f"{where} must be a finite number > 0, got {value!r}.")
+
+
+@dataclass(frozen=True)
+class Distribution:
+    """A validated case distribution (see `DEFAULT_DISTRIBUTION` for every key and unit).
+
+    Build with `default_distribution`, `load_distribution(path)` or
+    ``Distribution.from_dict(overrides)``; ``spec`` is the full, merged specification.
+    """
+
+    spec: dict = field(default_factory=lambda: copy.deepcopy(DEFAULT_DISTRIBUTION))
+    source: str = "default"
+
+    def __post_init__(self):
+        _validate(self.spec, self.source)
+        t1 = self.spec["time"]["t1"]
+        turb = self.spec["turbulence"]
+        if turb["omega_min"] >= turb["omega_max"]:
+            raise ValueError(f"{self.source}: turbulence.omega_min must be < omega_max.")
+        for section, key in (("payload", "attach_time"), ("pulses", "start"), ("gust", "start")):
+            if self.spec[section][key][1] >= t1:
+                raise ValueError(
+                    f"{self.source}: {section}.{key} must lie before time.t1 = "
+                    f"{t1} s, got {self.spec[section][key]}."
+                )
+        unm = self.spec["unmodeled"]
+        rate = unm["control_rate"]
+        if rate[0] == 0 and rate[1] > 0:
+            raise ValueError(
+                f"{self.source}: unmodeled.control_rate = {rate}: either [0, 0] "
+                "(continuous controller) or a range of rates > 0 [Hz]."
+            )
+        if rate[1] == 0:
+            digital_only = [
+                n
+                for n in (
+                    "delay_samples",
+                    "noise_angle",
+                    "noise_rate",
+                    "noise_altitude",
+                    "noise_vertical_speed",
+                )
+                if unm[n][1] > 0
+            ]
+            if digital_only:
+                raise ValueError(
+                    f"{self.source}: unmodeled.{', '.join(digital_only)} need a "
+                    "digital controller (unmodeled.control_rate > 0 [Hz])."
+                )
+
+    @classmethod
+    def from_dict(cls, overrides: dict, source: str = "overrides") -> Distribution:
+        """Defaults with ``overrides`` (same sections/keys, partial) applied; validated."""
+        _validate(overrides, source)
+        spec = copy.deepcopy(DEFAULT_DISTRIBUTION)
+        for section, body in overrides.items():
+            spec[section].update(copy.deepcopy(body))
+        return cls(spec, source)
+
+    def __hash__(self) -> int:
+        return hash(json.dumps(self.spec, sort_keys=True))
+
+    def to_dict(self) -> dict:
+        return copy.deepcopy(self.spec)
+
+    def describe(self) -> str:
+        """Markdown table of every section/key/value."""
+        lines = ["| section | key | value |", "|---|---|---|"]
+        for section, body in self.spec.items():
+            for key, value in body.items():
+                lines.append(f"| {section} | {key} | {json.dumps(value)} |")
+        return "\n".join(lines)
+
+
+def default_distribution() -> Distribution:
+    """The default Monte-Carlo distribution (`DEFAULT_DISTRIBUTION`)."""
+    return Distribution()
+
+
+def load_distribution(path: str | Path) -> Distribution:
+    """Read a TOML (``.toml``) or JSON file of overrides; errors name the bad key."""
+    path = Path(path)
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise ValueError(f"distribution file {path} does not exist.") from None
+    try:
+        if path.suffix.lower() == ".toml":
+            data = tomllib.loads(text.decode())
+        else:
+            data = json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"distribution file {path} could not be parsed: {err}.") from None
+    return Distribution.from_dict(data, source=str(path))

@@ -1,0 +1,334 @@
+"""Monte-Carlo statistics, terminal summary, figures and report.md / report.html.
+
+Definitions (all computed from the results table alone, so they can be recomputed from the
+file):
+
+- failure = status != "ok" (diverged or solver_failed); failure rate with a 95 % Wilson score
+  interval;
+- ISE percentiles (P50/P90/P99/max) over the controller's ok runs only; the number of excluded
+  (failed) runs is reported beside them;
+- paired win rate of a controller over the baseline (fbl when present) for a metric: over the
+  cases where at least one of the two is ok, the fraction where the challenger is ok and either
+  the baseline failed or the challenger's value is strictly smaller; 95 % Wilson interval.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ...plotting.montecarlo import (
+    controller_names,
+    figure_ecdf,
+    figure_heatmaps,
+    figure_ise_vs_payload,
+    figure_worst,
+)
+from ...scenario import TURBULENCE_INTENSITIES
+
+ISE_METRICS = ("ise_attitude", "ise_altitude")
+PERCENTILES = (50, 90, 99)
+Z95 = 1.959963984540054
+
+
+def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion k / n (nan, nan for n = 0)."""
+    if n == 0:
+        return (math.nan, math.nan)
+    p = k / n
+    den = 1.0 + z**2 / n
+    centre = (p + z**2 / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / den
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _per_case(cols: dict, name: str, key: str) -> np.ndarray:
+    """Values of ``key`` for controller ``name`` ordered by case index."""
+    m = cols["controller"] == name
+    order = np.argsort(cols["case"][m], kind="stable")
+    return np.asarray(cols[key][m])[order]
+
+
+def summarize(cols: dict) -> dict:
+    """All report numbers (JSON-serialisable) from the results columns."""
+    names = controller_names(cols)
+    out: dict = {"n_cases": int(len(np.unique(cols["case"]))), "controllers": {}, "paired": {}}
+    for name in names:
+        status = _per_case(cols, name, "status")
+        ok = status == "ok"
+        n, fails = len(status), int(np.sum(~ok))
+        entry = {
+            "n": n,
+            "status_counts": {
+                s: int(np.sum(status == s)) for s in ("ok", "diverged", "solver_failed")
+            },
+            "failures": fails,
+            "failure_rate": fails / n,
+            "failure_rate_ci95": list(wilson_interval(fails, n)),
+            "excluded_from_ise": fails,
+        }
+        for metric in ISE_METRICS:
+            x = _per_case(cols, name, metric)[ok]
+            stats = {
+                f"p{q}": float(np.percentile(x, q)) if len(x) else math.nan for q in PERCENTILES
+            }
+            stats["max"] = float(np.max(x)) if len(x) else math.nan
+            entry[metric] = stats
+        out["controllers"][name] = entry
+    baseline = "fbl" if "fbl" in names else names[0]
+    for name in names:
+        if name == baseline:
+            continue
+        pair = {}
+        ok_b = _per_case(cols, baseline, "status") == "ok"
+        ok_c = _per_case(cols, name, "status") == "ok"
+        for metric in ISE_METRICS:
+            xb, xc = _per_case(cols, baseline, metric), _per_case(cols, name, metric)
+            counted = ok_b | ok_c
+            win = ok_c & (~ok_b | (xc < xb))
+            k, n = int(np.sum(win & counted)), int(np.sum(counted))
+            pair[metric] = {
+                "wins": k,
+                "n": n,
+                "win_rate": k / n if n else math.nan,
+                "ci95": list(wilson_interval(k, n)),
+            }
+        out["paired"][f"{name}_over_{baseline}"] = pair
+    return out
+
+
+def _fmt(x: float) -> str:
+    return "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4g}"
+
+
+def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """(title, header, rows) tables shared by the terminal, markdown and HTML outputs."""
+    tables = []
+    for metric, unit in (("ise_attitude", "rad^2 s"), ("ise_altitude", "m^2 s")):
+        rows = []
+        for name, e in summary["controllers"].items():
+            s = e[metric]
+            rows.append(
+                [
+                    name,
+                    *(_fmt(s[f"p{q}"]) for q in PERCENTILES),
+                    _fmt(s["max"]),
+                    str(e["excluded_from_ise"]),
+                ]
+            )
+        tables.append(
+            (
+                f"{metric} [{unit}] over ok runs",
+                ["controller", "P50", "P90", "P99", "max", "excluded (failed)"],
+                rows,
+            )
+        )
+    rows = []
+    for name, e in summary["controllers"].items():
+        lo, hi = e["failure_rate_ci95"]
+        c = e["status_counts"]
+        rows.append(
+            [
+                name,
+                str(e["n"]),
+                str(c["ok"]),
+                str(c["diverged"]),
+                str(c["solver_failed"]),
+                f"{100 * e['failure_rate']:.2f} %",
+                f"[{100 * lo:.2f}, {100 * hi:.2f}] %",
+            ]
+        )
+    tables.append(
+        (
+            "failures",
+            [
+                "controller",
+                "runs",
+                "ok",
+                "diverged",
+                "solver_failed",
+                "failure rate",
+                "95 % Wilson",
+            ],
+            rows,
+        )
+    )
+    rows = []
+    for pair, per in summary["paired"].items():
+        for metric, w in per.items():
+            lo, hi = w["ci95"]
+            rows.append(
+                [
+                    pair,
+                    metric,
+                    f"{w['wins']}/{w['n']}",
+                    f"{100 * w['win_rate']:.1f} %",
+                    f"[{100 * lo:.1f}, {100 * hi:.1f}] %",
+                ]
+            )
+    if rows:
+        tables.append(
+            (
+                "paired win rate (same cases)",
+                ["pair", "metric", "wins/cases", "win rate", "95 % Wilson"],
+                rows,
+            )
+        )
+    return tables
+
+
+def format_summary(summary: dict) -> str:
+    """Plain-text summary for the terminal."""
+    lines = [
+        f"Monte-Carlo summary: {summary['n_cases']} cases x "
+        f"{len(summary['controllers'])} controllers"
+    ]
+    for title, header, rows in summary_tables(summary):
+        widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+        lines += ["", title]
+        lines.append("  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)))
+        lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(lines)
+
+
+def worst_cases(cols, k: int = 5) -> list[int]:
+    """Case indices of the k worst cases: failed runs first, then by the largest ISE attitude
+    relative to the controller's median (max over controllers)."""
+    names = controller_names(cols)
+    cases = np.sort(np.unique(cols["case"]))
+    score = np.zeros(len(cases))
+    for name in names:
+        ise = _per_case(cols, name, "ise_attitude")
+        ok = _per_case(cols, name, "status") == "ok"
+        med = np.median(ise[ok]) if np.any(ok) else 1.0
+        score = np.maximum(score, np.where(ok, ise / med, np.inf))
+    order = np.argsort(-score, kind="stable")
+    return [int(c) for c in cases[order[:k]]]
+
+
+def replay_worst(
+    cols, controllers: dict, distribution, seed: int, k: int = 5, settings=None
+) -> dict[int, dict]:
+    """Re-simulate the k worst cases with every controller (trajectories kept)."""
+    from ...sim import simulate
+    from ._runner import SolverSettings
+    from ._sampler import sample_cases
+
+    settings = (settings or SolverSettings()).with_tolerances_for("vmap")
+    out = {}
+    for case in worst_cases(cols, k):
+        batch = sample_cases(distribution, 1, seed, start=case)
+        scenario, vehicle, model = batch.case(0)
+        out[case] = {
+            name: simulate(
+                ctrl,
+                scenario,
+                vehicle,
+                model,
+                solver=settings.solver,
+                rtol=settings.rtol,
+                atol=settings.atol,
+                n_save=801,
+                max_steps=settings.max_steps,
+                unmodeled=batch.unmodeled_case(0),
+            )
+            for name, ctrl in controllers.items()
+        }
+    return out
+
+
+# ---------------------------------------------------------------- documents
+def _png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _md_table(header, rows) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _html_table(header, rows) -> str:
+    h = "".join(f"<th>{html.escape(c)}</th>" for c in header)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows
+    )
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def write_report(
+    out: str | Path,
+    cols: dict,
+    summary: dict,
+    distribution,
+    meta: dict,
+    replays: dict | None = None,
+    figures: bool = True,
+) -> dict[str, Path]:
+    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html."""
+    out = Path(out)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figs: list[tuple[str, str, bytes]] = []
+    if figures:
+        fig_dir = out / "figures"
+        fig_dir.mkdir(exist_ok=True)
+        makers = [
+            ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols)),
+            ("heatmap_payload_gust", "payload x gust amplitude", lambda: figure_heatmaps(cols)),
+            ("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)),
+        ]
+        if replays:
+            makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
+        for stem, title, make in makers:
+            data = _png(make())
+            (fig_dir / f"{stem}.png").write_bytes(data)
+            figs.append((stem, title, data))
+    cfg = meta.get("config", {})
+    intro = (
+        f"{summary['n_cases']} cases, controllers {', '.join(summary['controllers'])}, "
+        f"seed {cfg.get('seed')}, git {meta.get('git_revision')}. Turbulence levels: "
+        f"{', '.join(f'{i} = {n}' for i, n in enumerate(TURBULENCE_INTENSITIES))}."
+    )
+    md = ["# Monte-Carlo robustness report", "", intro, ""]
+    hp = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>Monte-Carlo robustness"
+        "</title><style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
+        "table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;"
+        "padding:2px 6px;font-size:13px}</style></head><body>",
+        "<h1>Monte-Carlo robustness report</h1>",
+        f"<p>{html.escape(intro)}</p>",
+    ]
+    for title, header, rows in summary_tables(summary):
+        md += [f"## {title}", "", _md_table(header, rows), ""]
+        hp += [f"<h2>{html.escape(title)}</h2>", _html_table(header, rows)]
+    for stem, title, data in figs:
+        md += [f"## {title}", "", f"![{title}](figures/{stem}.png)", ""]
+        b64 = base64.b64encode(data).decode()
+        hp += [
+            f"<h2>{html.escape(title)}</h2>",
+            f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>",
+        ]
+    dist_rows = [
+        [s, k, json.dumps(v)] for s, body in distribution.spec.items() for k, v in body.items()
+    ]
+    md += ["## Distribution", "", _md_table(["section", "key", "value"], dist_rows), ""]
+    hp += ["<h2>Distribution</h2>", _html_table(["section", "key", "value"], dist_rows)]
+    hp += [
+        "<h2>Metadata</h2>",
+        f"<pre>{html.escape(json.dumps(meta, indent=2))}</pre>",
+        "</body></html>",
+    ]
+    (out / "report.md").write_text("\n".join(md))
+    (out / "report.html").write_text("\n".join(hp))
+    return {"md": out / "report.md", "html": out / "report.html", "summary": out / "summary.json"}

@@ -1,0 +1,413 @@
+"""Sampling Monte-Carlo cases from a `Distribution`.
+
+Case i is drawn from its own key ``fold_in(PRNGKey(seed), i)``, so a case never depends on how
+many cases are drawn with it or on how they are chunked. One exception, so that the cases of an
+ensemble group can share their control sample instants: with ``[unmodeled]`` digital control,
+the control rate of case i is the one drawn for case ``GROUP_SIZE * (i // GROUP_SIZE)`` (the
+first case of its group of `GROUP_SIZE` consecutive indices). Every case still gets a rate from
+the configured range (uniform marginal); cases of one group are just not independent in it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._typing import Array
+from ...model import QuadrotorParams, UnmodeledDynamics
+from ...scenario import (
+    TURBULENCE_INTENSITIES,
+    PulseDisturbance,
+    Reference,
+    Scenario,
+    Wind,
+    dryden_amplitudes,
+    paper_reference,
+    turbulence_grid,
+)
+from ._distribution import Distribution
+
+GROUP_SIZE = 4
+"""Cases per ensemble group (measured: fewer shared jump times than larger groups, less per-step
+solver work per case than single cases); digital-control cases of a group share one rate."""
+
+INPUT_COLUMNS: tuple[str, ...] = (
+    "payload_fraction",
+    "payload_time",
+    "inertia_scale",
+    "thrust_coefficient_scale",
+    "drag_coefficient_scale",
+    "thrust_to_weight",
+    "drag_coefficient",
+    "cp_offset",
+    "pulse_torque_phi",
+    "pulse_torque_theta",
+    "pulse_torque_psi",
+    "pulse_torque_start",
+    "pulse_torque_duration",
+    "pulse_force_z",
+    "pulse_force_start",
+    "pulse_force_duration",
+    "gust_amplitude_x",
+    "gust_amplitude_y",
+    "gust_amplitude_z",
+    "gust_speed",
+    "gust_buildup_x",
+    "gust_buildup_y",
+    "gust_buildup_z",
+    "gust_start",
+    "turbulence_level",
+    "turbulence_sigma_w",
+    "initial_phi",
+    "initial_theta",
+    "initial_psi",
+    "initial_phid",
+    "initial_thetad",
+    "initial_psid",
+    "profile",
+)
+"""Sampled inputs recorded per case (SI units, rad). ``turbulence_level`` indexes
+`afbl_jax._wind.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine;
+``gust_speed`` = |gust amplitude vector| [m/s]; ``turbulence_sigma_w`` the vertical RMS [m/s]."""
+PROFILE_NAMES = ("step", "sine")
+UNMODELED_COLUMNS: tuple[str, ...] = (
+    "motor_tau",
+    "control_rate",
+    "delay_samples",
+    "noise_angle",
+    "noise_rate",
+    "noise_altitude",
+    "noise_vertical_speed",
+)
+"""Extra inputs recorded per case when the distribution's ``unmodeled`` section is enabled:
+the case's `afbl_jax.UnmodeledDynamics` numbers (``motor_tau`` [s], ``control_rate`` [Hz],
+0 = continuous controller, ``delay_samples`` [samples], noise standard deviations [rad],
+[rad/s], [m], [m/s])."""
+_UNMODELED_STREAM = 0x554E4D44  # fold_in constant of the per-case unmodeled key ("UNMD")
+
+
+class CaseBatch(eqx.Module):
+    """A batch of Monte-Carlo cases (leading axis = case).
+
+    Attributes:
+        scenario: batched `Scenario` (reference, pulses, payload, wind, initial state).
+        vehicle: batched true vehicle `QuadrotorParams`.
+        model: the controllers' nominal model (unbatched here; batched also accepted).
+        inputs: every sampled number per case, each of shape (n,) (`INPUT_COLUMNS`, plus
+            `UNMODELED_COLUMNS` when ``unmodeled`` is set).
+        index: global case index of each row, shape (n,).
+        unmodeled: batched `afbl_jax.UnmodeledDynamics` (leading axis = case; static fields
+            shared), or None for the paper's closed loop.
+    """
+
+    scenario: Scenario
+    vehicle: QuadrotorParams
+    model: QuadrotorParams
+    inputs: dict[str, Array]
+    index: Array
+    unmodeled: UnmodeledDynamics | None = None
+
+    @property
+    def input_columns(self) -> tuple[str, ...]:
+        """Names of the recorded inputs, in column order."""
+        return INPUT_COLUMNS + (UNMODELED_COLUMNS if self.unmodeled is not None else ())
+
+    @property
+    def n_cases(self) -> int:
+        return int(np.shape(self.index)[0])
+
+    @property
+    def model_batched(self) -> bool:
+        return np.ndim(self.model.m) == 1
+
+    def take(self, indices) -> CaseBatch:
+        """The cases at positions ``indices`` (an int array or a slice) of this batch."""
+        if isinstance(indices, slice):
+            indices = np.arange(self.n_cases)[indices]
+        idx = jnp.asarray(indices)
+        pick = lambda x: x[idx]  # noqa: E731
+        model = jax.tree.map(pick, self.model) if self.model_batched else self.model
+        unmodeled = None if self.unmodeled is None else jax.tree.map(pick, self.unmodeled)
+        return CaseBatch(
+            jax.tree.map(pick, self.scenario),
+            jax.tree.map(pick, self.vehicle),
+            model,
+            {k: v[idx] for k, v in self.inputs.items()},
+            self.index[idx],
+            unmodeled,
+        )
+
+    def __getitem__(self, indices) -> CaseBatch:
+        return self.take(indices)
+
+    def case(self, i: int) -> tuple[Scenario, QuadrotorParams, QuadrotorParams]:
+        """(scenario, vehicle, model) of row i, unbatched (for `afbl_jax.simulate`)."""
+        pick = lambda x: x[i]  # noqa: E731
+        model = jax.tree.map(pick, self.model) if self.model_batched else self.model
+        return jax.tree.map(pick, self.scenario), jax.tree.map(pick, self.vehicle), model
+
+    def unmodeled_case(self, i: int) -> UnmodeledDynamics | None:
+        """The unmodeled-dynamics settings of row i, unbatched (None if not sampled)."""
+        if self.unmodeled is None:
+            return None
+        return jax.tree.map(lambda x: x[i], self.unmodeled)
+
+
+def _uniform(key, rng, shape=()):
+    lo, hi = rng
+    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
+
+
+def _categorical(key, probs: dict, names) -> Array:
+    p = np.array([float(probs.get(n, 0.0)) for n in names])
+    return jax.random.choice(key, len(names), p=jnp.asarray(p / p.sum()))
+
+
+def _sample_one(key, spec: dict, amp_table, omega, references):
+    k = iter(jax.random.split(key, 24))
+    pay, err, aero = spec["payload"], spec["model_error"], spec["aero"]
+    pul, gust, turb, ini = spec["pulses"], spec["gust"], spec["turbulence"], spec["initial"]
+    inputs = {}
+    inputs["payload_fraction"] = _uniform(next(k), pay["fraction"])
+    inputs["payload_time"] = _uniform(next(k), pay["attach_time"])
+    for name in (
+        "inertia_scale",
+        "thrust_coefficient_scale",
+        "drag_coefficient_scale",
+        "thrust_to_weight",
+    ):
+        inputs[name] = _uniform(next(k), err[name])
+    inputs["drag_coefficient"] = _uniform(next(k), aero["drag_coefficient"])
+    inputs["cp_offset"] = _uniform(next(k), aero["cp_offset"])
+
+    on = 1.0 if pul["enabled"] else 0.0
+    torque = on * _uniform(next(k), pul["torque"], (3,))
+    force_z = on * _uniform(next(k), pul["vertical_force"])
+    starts = _uniform(next(k), pul["start"], (2,))
+    durations = _uniform(next(k), pul["duration"], (2,))
+    for j, ax in enumerate(("phi", "theta", "psi")):
+        inputs[f"pulse_torque_{ax}"] = torque[j]
+    inputs["pulse_torque_start"], inputs["pulse_torque_duration"] = starts[0], durations[0]
+    inputs["pulse_force_z"] = force_z
+    inputs["pulse_force_start"], inputs["pulse_force_duration"] = starts[1], durations[1]
+    zero3 = jnp.zeros(3)
+    pulses = PulseDisturbance(
+        starts,
+        durations,
+        jnp.stack([torque, zero3]),
+        jnp.stack([zero3, jnp.array([0.0, 0.0, 1.0]) * force_z]),
+    )
+
+    g_on = 1.0 if gust["enabled"] else 0.0
+    mag = jnp.concatenate(
+        [
+            _uniform(next(k), gust["horizontal_amplitude"], (2,)),
+            _uniform(next(k), gust["vertical_amplitude"], (1,)),
+        ]
+    )
+    sign = jnp.where(jax.random.bernoulli(next(k), 0.5, (3,)), 1.0, -1.0)
+    amp = g_on * mag * sign
+    buildup = _uniform(next(k), gust["buildup_time"], (3,))
+    g_start = _uniform(next(k), gust["start"])
+    for j, ax in enumerate("xyz"):
+        inputs[f"gust_amplitude_{ax}"] = amp[j]
+        inputs[f"gust_buildup_{ax}"] = buildup[j]
+    inputs["gust_speed"] = jnp.sqrt(jnp.sum(amp**2))
+    inputs["gust_start"] = g_start
+
+    if turb["enabled"]:
+        level = _categorical(next(k), turb["intensity_probabilities"], TURBULENCE_INTENSITIES)
+    else:
+        level = jnp.asarray(0)
+    phase = jax.random.uniform(next(k), (3, len(omega)), maxval=2.0 * jnp.pi)
+    t_amp = jnp.asarray(amp_table)[level]
+    inputs["turbulence_level"] = level
+    inputs["turbulence_sigma_w"] = jnp.sqrt(0.5 * jnp.sum(t_amp[2] ** 2))
+    wind = Wind(g_start[None], buildup[None], amp[None], t_amp, jnp.asarray(omega), phase)
+
+    att = _uniform(next(k), ini["attitude"], (3,))
+    rate = _uniform(next(k), ini["rate"], (3,))
+    for j, ax in enumerate(("phi", "theta", "psi")):
+        inputs[f"initial_{ax}"] = att[j]
+        inputs[f"initial_{ax}d"] = rate[j]
+    initial = jnp.zeros(12).at[3:6].set(att).at[9:12].set(rate)
+
+    profile = _categorical(next(k), spec["reference"]["profile_probabilities"], PROFILE_NAMES)
+    inputs["profile"] = profile
+    reference = jax.tree.map(lambda *refs: jnp.stack(refs)[profile], *references)
+
+    scenario = Scenario(
+        reference,
+        pulses,
+        inputs["payload_fraction"],
+        inputs["payload_time"],
+        initial,
+        0.0,
+        spec["time"]["t1"],
+        wind,
+    )
+    nominal = QuadrotorParams()
+    omega_max = jnp.sqrt(inputs["thrust_to_weight"] * nominal.m * nominal.g / (4.0 * nominal.b))
+    vehicle = eqx.tree_at(
+        lambda p: (p.Ix, p.Iy, p.Iz, p.b, p.d, p.omega_max, p.drag_coefficient, p.cp_offset),
+        nominal,
+        (
+            nominal.Ix * inputs["inertia_scale"],
+            nominal.Iy * inputs["inertia_scale"],
+            nominal.Iz * inputs["inertia_scale"],
+            nominal.b * inputs["thrust_coefficient_scale"],
+            nominal.d * inputs["drag_coefficient_scale"],
+            omega_max,
+            inputs["drag_coefficient"],
+            inputs["cp_offset"],
+        ),
+    )
+    return scenario, vehicle, inputs
+
+
+def nominal_model(distribution: Distribution) -> QuadrotorParams:
+    """The controllers' nominal model: Table 1 with the distribution's nominal T/W limit."""
+    del distribution
+    return QuadrotorParams()
+
+
+def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> CaseBatch:
+    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed``.
+
+    Case i uses the key ``fold_in(PRNGKey(seed), i)`` only, so it is the same in every batch.
+    """
+    if isinstance(n_cases, bool) or int(n_cases) < 1:
+        raise ValueError(f"n_cases must be an integer >= 1, got {n_cases!r}.")
+    if int(start) < 0:
+        raise ValueError(f"start must be >= 0, got {start!r}.")
+    index = jnp.arange(int(start), int(start) + int(n_cases))
+    base = jax.random.PRNGKey(int(seed))
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+    scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
+    unmodeled = None
+    if distribution.spec["unmodeled"]["enabled"]:
+        group_keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(
+            (index // GROUP_SIZE) * GROUP_SIZE
+        )
+        unmodeled, extra = _sample_unmodeled(distribution, keys, group_keys)
+        inputs = {**inputs, **extra}
+    return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index, unmodeled)
+
+
+def unmodeled_statics(distribution: Distribution) -> dict:
+    """Static `UnmodeledDynamics` fields shared by all cases of an enabled distribution:
+    ``plant``, ``max_samples = ceil(t1 * max control rate)`` (0 = continuous) and
+    ``max_delay`` = the largest delay of the range."""
+    unm = distribution.spec["unmodeled"]
+    rate_hi = float(unm["control_rate"][1])
+    t1 = float(distribution.spec["time"]["t1"])
+    max_samples = int(math.ceil(t1 * rate_hi - 1e-9)) if rate_hi > 0 else 0
+    return {
+        "plant": unm["plant"],
+        "max_samples": max_samples,
+        "max_delay": int(unm["delay_samples"][1]),
+    }
+
+
+def _sample_unmodeled(
+    distribution: Distribution, keys, group_keys
+) -> tuple[UnmodeledDynamics, dict]:
+    """Per-case unmodeled settings from ``fold_in(case key, _UNMODELED_STREAM)`` (a stream
+    separate from the other inputs, which stay as without the section); the control rate from
+    the group's first case (``group_keys``)."""
+    draws = _unmodeled_sampler(distribution)(keys, group_keys)
+    extra = {name: draws[name] for name in UNMODELED_COLUMNS}
+    settings = UnmodeledDynamics(
+        **unmodeled_statics(distribution),
+        motor_tau=draws["motor_tau"],
+        control_rate=draws["control_rate"],
+        delay_samples=draws["delay_samples"],
+        noise_angle=draws["noise_angle"],
+        noise_rate=draws["noise_rate"],
+        noise_altitude=draws["noise_altitude"],
+        noise_vertical_speed=draws["noise_vertical_speed"],
+        key=draws["key"],
+    )
+    return settings, extra
+
+
+@functools.lru_cache(maxsize=8)
+def _unmodeled_sampler(distribution: Distribution):
+    unm = distribution.spec["unmodeled"]
+    lo_d, hi_d = (int(v) for v in unm["delay_samples"])
+
+    def one(case_key, group_key):
+        k = jax.random.split(jax.random.fold_in(case_key, _UNMODELED_STREAM), 8)
+        k_group = jax.random.split(jax.random.fold_in(group_key, _UNMODELED_STREAM), 8)
+        out = {
+            "motor_tau": _uniform(k[0], unm["motor_tau"]),
+            "control_rate": _uniform(k_group[1], unm["control_rate"]),
+            "delay_samples": jax.random.randint(k[2], (), lo_d, hi_d + 1, dtype=jnp.int32),
+        }
+        for j, name in enumerate(
+            ("noise_angle", "noise_rate", "noise_altitude", "noise_vertical_speed")
+        ):
+            out[name] = _uniform(k[3 + j], unm[name])
+        out["key"] = k[7]
+        return out
+
+    return jax.jit(jax.vmap(one))
+
+
+def shared_slot_references(references: list[Reference]) -> list[Reference]:
+    """The same signals with the timing of unused slots aligned across the references.
+
+    A zero-size step slot takes the start and duration of the same slot of another reference
+    where it is used, and a zero-amplitude sinusoid takes the other's frequency and phase; the
+    signals (r, rd, rdd) are unchanged. Cases drawn from these references then share every
+    timing leaf, which `afbl_jax.simulate_batch` evaluates once for all cases instead of per
+    case (the blends are most of the vector field's cost otherwise). The unused slots add their
+    (harmless) kink times to the jump times.
+    """
+    ref = [jax.tree.map(np.asarray, r) for r in references]
+    start = np.array(ref[0].step_start, dtype=float)
+    duration = np.array(ref[0].step_duration, dtype=float)
+    freq = np.array(ref[0].sine_frequency, dtype=float)
+    phase = np.array(ref[0].sine_phase, dtype=float)
+    for r in ref[1:]:
+        used, free = r.step_size != 0, ref[0].step_size == 0
+        take = used & free
+        start[take], duration[take] = r.step_start[take], r.step_duration[take]
+        take = (r.sine_amplitude != 0) & (ref[0].sine_amplitude == 0)
+        freq[take], phase[take] = r.sine_frequency[take], r.sine_phase[take]
+    out = []
+    for r in ref:
+        slot_free, sine_free = r.step_size == 0, r.sine_amplitude == 0
+        out.append(
+            Reference(
+                r.offset,
+                np.where(slot_free, start, r.step_start),
+                r.step_size,
+                np.where(slot_free, duration, r.step_duration),
+                r.sine_amplitude,
+                np.where(sine_free, freq, r.sine_frequency),
+                np.where(sine_free, phase, r.sine_phase),
+            )
+        )
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _batch_sampler(distribution: Distribution):
+    """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
+    spec = distribution.spec
+    turb = spec["turbulence"]
+    omega, domega = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    amp_table = np.stack(
+        [
+            dryden_amplitudes(name, turb["altitude"], turb["airspeed"], omega, domega)
+            for name in TURBULENCE_INTENSITIES
+        ]
+    )
+    references = shared_slot_references([paper_reference(p) for p in PROFILE_NAMES])
+    return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, amp_table, omega, references)))

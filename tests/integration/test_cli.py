@@ -1,0 +1,179 @@
+"""`afbl reproduce` end to end, and gains-file validation."""
+
+import json
+
+import numpy as np
+import pytest
+
+import afbl_jax as A
+from afbl_jax.cli import main
+from afbl_jax.io import controller_from_dict, gains_to_dict, load_gains, save_gains
+from afbl_jax.plotting.paper import PAPER_FIGURES
+from afbl_jax.studies.reproduce import SCENARIO_KEYS
+
+
+def test_reproduce_cli_end_to_end(tmp_path, capsys):
+    gains = tmp_path / "gains.json"
+    gains.write_text(
+        json.dumps(
+            {
+                "controller": "afbl",
+                "gamma": [8, 15, 8, 20],
+                "k": [8, 15, 8, 80],
+                "lambda": [4, 4, 4, 4],
+            }
+        )
+    )
+    out = tmp_path / "paper"
+    rc = main(
+        [
+            "reproduce",
+            "--out",
+            str(out),
+            "--n-save",
+            "201",
+            "--rtol",
+            "1e-7",
+            "--atol",
+            "1e-9",
+            "--gains",
+            str(gains),
+        ]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "ISE reduction of afbl vs fbl" in text and "uncertain_step" in text
+    doc = json.loads((out / "ise.json").read_text())
+    assert set(doc) == {*SCENARIO_KEYS, "meta"}
+    for key in SCENARIO_KEYS:
+        assert set(doc[key]) == {"fbl", "afbl", "afbl_paper"}
+        for vals in doc[key].values():
+            assert set(vals) == {"ise_attitude", "ise_altitude"}
+            assert all(isinstance(v, float) for v in vals.values())
+    meta = doc["meta"]
+    assert meta["config"]["rtol"] == 1e-7 and meta["versions"]["jax"]
+    assert "git_revision" in meta and meta["x64"] is True
+    # the JSON holds the numbers a direct simulation gives
+    direct = A.simulate(
+        A.FBLPID(), A.paper_scenario("uncertain", "step"), rtol=1e-7, atol=1e-9, n_save=0
+    )
+    np.testing.assert_allclose(
+        doc["uncertain_step"]["fbl"]["ise_attitude"], float(direct.ise_attitude), rtol=1e-6
+    )
+    for name in PAPER_FIGURES:
+        assert (out / name).stat().st_size > 10_000
+
+
+def test_reproduce_cli_rejects_bad_input(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(
+        json.dumps(
+            {"controller": "afbl", "gamma": [1, 2, 3], "k": [1, 1, 1, 1], "lambda": [1, 1, 1, 1]}
+        )
+    )
+    out = tmp_path / "out"
+    assert main(["reproduce", "--out", str(out), "--gains", str(bad)]) == 2
+    assert "list of 4 numbers" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(out), "--controllers", "fbl,lqr"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("afbl reproduce: error: unknown controller") and err.count("\n") == 1
+    with pytest.raises(SystemExit) as exc:
+        main(["reproduce"])  # --out is required (argparse)
+    assert exc.value.code == 2
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        ({"controller": "mpc", "P": [1, 1, 1, 1]}, "unknown controller"),
+        ({"controller": "fbl", "P": [1, 1, 1, 1], "I": [1, 1, 1, 1]}, "missing D"),
+        (
+            {"controller": "fbl", "P": [1, 1, 1, 1], "I": [1, 1, 1, 1], "D": [1, 1, 1, -1]},
+            "must be positive",
+        ),
+        (
+            {"controller": "fbl", "P": [1, 1, 1], "I": [1, 1, 1, 1], "D": [1, 1, 1, 1]},
+            "list of 4 numbers",
+        ),
+        (
+            {"controller": "fbl", "P": [1, 1, 1, "a"], "I": [1, 1, 1, 1], "D": [1, 1, 1, 1]},
+            "non-numeric",
+        ),
+        (
+            {"controller": "afbl", "gamma": [1] * 4, "k": [1] * 4, "lambda": [1] * 4, "x": 1},
+            "unknown x",
+        ),
+        ([1, 2], "expected a JSON object"),
+    ],
+)
+def test_bad_gains_are_rejected(data, match):
+    with pytest.raises(ValueError, match=match):
+        controller_from_dict(data)
+
+
+def test_gains_roundtrip(tmp_path):
+    ctrl = A.AFBL(k=[1.0, 2.0, 3.0, 4.0], lam=[2.0, 3.0, 4.0, 5.0])
+    path = tmp_path / "g.json"
+    save_gains(ctrl, path)
+    assert json.loads(path.read_text()) == gains_to_dict(ctrl)
+    assert set(gains_to_dict(ctrl)) == {"controller", "gamma", "k", "lambda"}
+    back = load_gains(path)
+    assert isinstance(back, A.AFBL)
+    np.testing.assert_array_equal(back.lam, ctrl.lam)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_gains(tmp_path / "missing.json")
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_gains(tmp_path / "broken.json")
+
+
+def test_bench_cli_smoke(tmp_path, capsys):
+    out = tmp_path / "bench"
+    rc = main(
+        [
+            "bench",
+            "--out",
+            str(out),
+            "--sizes",
+            "4",
+            "--strategies",
+            "scipy_rk45_loop,ensemble",
+            "--scipy-cases",
+            "1",
+            "--loop-cases",
+            "1",
+            "--ref-cases",
+            "4",
+        ]
+    )
+    assert rc == 0
+    rows = json.loads((out / "bench.json").read_text())
+    assert isinstance(rows, list) and [r["strategy"] for r in rows] == [
+        "scipy_rk45_loop",
+        "ensemble",
+    ]
+    keys = {
+        "strategy",
+        "N",
+        "dtype",
+        "sims_per_s",
+        "ratio_to_scipy",
+        "compile_s",
+        "peak_rss_delta_mb",
+        "max_rel_ise_error",
+        "meta",
+    }
+    for r in rows:
+        assert keys <= set(r) and r["sims_per_s"] > 0
+        assert r["meta"]["config"]["seed"] == 0 and r["meta"]["versions"]["diffrax"]
+    scipy_row, ens = rows
+    assert scipy_row["ratio_to_scipy"] == 1.0
+    # both solve the same problem: the scipy loop agrees with the reference too
+    assert scipy_row["max_rel_ise_error"] < 1e-3 and ens["max_rel_ise_error"] < 1e-4
+    assert ens["N"] == 4 and ens["dtype"] == "float64"
+    assert rows[0]["meta"]["config"]["reference_check_max_rel_error"] < 1e-7
+    assert (out / "bench.png").stat().st_size > 5_000
+    assert "ensemble" in capsys.readouterr().out
+    assert main(["bench", "--out", str(out), "--strategies", "magic"]) == 2
+    assert "unknown strategies" in capsys.readouterr().err

@@ -1,0 +1,160 @@
+"""Every script in studies/ runs end to end at a small size, as a user would run it (a fresh
+Python process, one XLA CPU device per core), and writes its outputs; bad input is one line on
+stderr with exit status 2 and no traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+STUDIES = ROOT / "studies"
+
+
+def _run(script: str, *args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("XLA_FLAGS", None)
+    return subprocess.run(
+        [sys.executable, str(STUDIES / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        env=env,
+    )
+
+
+def test_every_study_script_is_tested():
+    tested = {
+        "reproduce_paper.py",
+        "montecarlo_robustness.py",
+        "tune_gains.py",
+        "unmodeled_dynamics.py",
+        "benchmark.py",
+    }
+    assert {p.name for p in STUDIES.glob("*.py")} == tested
+
+
+def test_reproduce_paper_script(tmp_path):
+    r = _run(
+        "reproduce_paper.py",
+        "--out",
+        str(tmp_path),
+        "--controllers",
+        "fbl,afbl",
+        "--n-save",
+        "11",
+        "--rtol",
+        "1e-6",
+        "--atol",
+        "1e-8",
+        "--no-figures",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "ISE reduction of afbl vs fbl" in r.stdout
+    doc = json.loads((tmp_path / "ise.json").read_text())
+    assert doc["meta"]["config"]["controllers"]["afbl"]["lambda"] == [4.0, 4.0, 4.0, 4.0]
+
+
+def test_montecarlo_script(tmp_path):
+    r = _run(
+        "montecarlo_robustness.py",
+        "--cases",
+        "8",
+        "--chunk-size",
+        "8",
+        "--out",
+        str(tmp_path / "mc"),
+        "--no-progress",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "paired win rate" in r.stdout
+    for name in ("results.parquet", "meta.json", "summary.json", "report.md", "report.html"):
+        assert (tmp_path / "mc" / name).exists(), name
+    meta = json.loads((tmp_path / "mc" / "meta.json").read_text())
+    assert meta["config"]["seed"] == 0 and meta["git_revision"]
+    assert len(meta["jax_devices"]) == os.cpu_count()  # one device per core
+
+
+def test_unmodeled_script(tmp_path):
+    r = _run(
+        "unmodeled_dynamics.py",
+        "--out",
+        str(tmp_path),
+        "--controllers",
+        "fbl",
+        "--taus",
+        "0.03",
+        "--rates",
+        "50",
+        "--noise-levels",
+        "0",
+        "--no-figures",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "unmodeled_dynamics.json").read_text())
+    assert doc["meta"]["config"]["rates_hz"] == [50.0]
+
+
+def test_tune_script(tmp_path):
+    r = _run(
+        "tune_gains.py",
+        "--controller",
+        "afbl",
+        "--objective",
+        "nominal",
+        "--steps",
+        "1",
+        "--out",
+        str(tmp_path),
+        "--no-figures",
+        "--no-progress",
+        "--rtol",
+        "1e-5",
+        "--atol",
+        "1e-7",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    gains = json.loads((tmp_path / "gains.json").read_text())
+    assert gains["controller"] == "afbl" and len(gains["lambda"]) == 4
+
+
+def test_benchmark_script(tmp_path):
+    r = _run(
+        "benchmark.py",
+        "--out",
+        str(tmp_path),
+        "--sizes",
+        "8",
+        "--strategies",
+        "scipy_rk45_loop,montecarlo_default",
+        "--scipy-cases",
+        "1",
+        "--ref-cases",
+        "8",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = json.loads((tmp_path / "bench.json").read_text())
+    assert [r_["strategy"] for r_ in rows] == ["scipy_rk45_loop", "montecarlo_default"]
+    assert rows[1]["max_rel_ise_error"] < 1e-3
+
+
+@pytest.mark.parametrize(
+    "script, args, match",
+    [
+        ("montecarlo_robustness.py", ["--cases", "0"], "--cases must be >= 1"),
+        ("reproduce_paper.py", ["--controllers", "lqr"], "unknown controller"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(tmp_path, script, args, match):
+    out = tmp_path / "never"
+    r = _run(script, "--out", str(out), *args)
+    assert r.returncode == 2
+    assert match in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not out.exists()
