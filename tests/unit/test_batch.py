@@ -195,13 +195,26 @@ def test_realistic_vehicle_ensemble_agrees_with_simulate(cases):
     singles = [A.simulate(ctrl, _case(scenarios, i), n_save=0, unmodeled=u) for i in range(N)]
     ref = np.array([[float(r.ise_attitude), float(r.ise_altitude)] for r in singles])
     assert all(int(r.status) == 0 for r in singles)
-    for dtype, rtol, atol, bound in (("float64", 1e-6, 1e-8, 1e-6),
-                                     ("float32", 3e-6, 3e-7, 1e-3)):
-        m = A.simulate_batch(ctrl, scenarios, unmodeled=u, strategy="ensemble", dtype=dtype,
-                             rtol=rtol, atol=atol, group_size=2)
+    for dtype, rtol, atol, bound in (("float64", 1e-6, 1e-8, 1e-6), ("float32", 3e-6, 3e-7, 1e-3)):
+        m = A.simulate_batch(
+            ctrl,
+            scenarios,
+            unmodeled=u,
+            strategy="ensemble",
+            dtype=dtype,
+            rtol=rtol,
+            atol=atol,
+            group_size=2,
+        )
         assert np.all(np.asarray(m.status) == 0)
         np.testing.assert_allclose(_ise(m), ref, rtol=bound, err_msg=dtype)
-    bad = A.stack_unmodeled([u, u, A.UnmodeledDynamics.make(plant="full", control_rate=200.0,
-                                                            max_samples=u.max_samples), u])
+    bad = A.stack_unmodeled(
+        [
+            u,
+            u,
+            A.UnmodeledDynamics.make(plant="full", control_rate=200.0, max_samples=u.max_samples),
+            u,
+        ]
+    )
     with pytest.raises(ValueError, match="share their control sample instants"):
         A.simulate_batch(ctrl, scenarios, unmodeled=bad, strategy="ensemble", group_size=2)
