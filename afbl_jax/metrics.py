@@ -91,6 +91,25 @@ def peaks_over_samples(ts, samples, t_final) -> Array:
     return jnp.where(jnp.any(valid, axis=0), peak, jnp.nan)
 
 
+def fold_peaks(peaks, samples, counts) -> Array:
+    """One sample folded into running peaks (`peaks_over_samples` one sample at a time, for
+    solvers that sample inside their loop): ``peaks`` and ``samples`` (..., 3), ``counts``
+    (...,) whether the sample is at or before the run's end. Start from -inf (`no_peaks`);
+    non-finite samples are skipped; `finish_peaks` gives NaN where no sample counted."""
+    use = counts[..., None] & jnp.isfinite(samples)
+    return jnp.maximum(peaks, jnp.where(use, samples, -jnp.inf))
+
+
+def no_peaks(shape, dtype) -> Array:
+    """Running peaks before any sample: -inf, shape (*shape, 3) (`fold_peaks`)."""
+    return jnp.full((*shape, 3), -jnp.inf, dtype)
+
+
+def finish_peaks(peaks) -> Array:
+    """Running peaks (`fold_peaks`) -> peaks: NaN where no sample counted (samples are >= 0)."""
+    return jnp.where(jnp.isneginf(peaks), jnp.nan, peaks)
+
+
 def metrics_from_result(result, vehicle: QuadrotorParams, model: QuadrotorParams) -> BatchMetrics:
     """`BatchMetrics` (unbatched) of one `afbl_jax.simulate` result; peaks from its saved
     samples (NaN when it saved none)."""

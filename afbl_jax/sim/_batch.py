@@ -50,15 +50,15 @@ from ..metrics import BatchMetrics, metrics_from_result
 from ..model import AbstractController, QuadrotorParams, UnmodeledDynamics
 from ..scenario import Scenario
 from ._closed_loop import CaseInputs, ClosedLoop, DivergenceLimits
-from ._ensemble import solve_group
+from ._ensemble import INTEGRATORS, solve_group
 from ._solve import get_solver, simulate
 
 STRATEGIES = ("vmap", "ensemble")
 """Batched-solving strategies accepted by `simulate_batch`."""
 
 
-def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save) -> BatchMetrics:
-    del dtype  # simulate runs in the default float dtype
+def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrator) -> BatchMetrics:
+    del dtype, integrator  # simulate runs diffeqsolve in the default float dtype
 
     def one(p):
         loop, inputs = eqx.combine(p, fixed)
@@ -123,6 +123,7 @@ def _run(
     group_size,
     n_save,
     devices,
+    integrator,
 ) -> BatchMetrics:
     """``part``: the leaves that differ between cases (leading axis n); ``fixed``: the leaves
     shared by every case (unbatched), so per-evaluation work on them is done once."""
@@ -131,7 +132,7 @@ def _run(
     local_n = n_chunks * chunk
 
     def solve(p, fx):
-        args = (p, fx, chunk, solver, rtol, atol, np.dtype(dtype), max_steps, n_save)
+        args = (p, fx, chunk, solver, rtol, atol, np.dtype(dtype), max_steps, n_save, integrator)
         if strategy == "ensemble":
             return _ensemble(group_size, *args)
         return _vmap(*args)
@@ -274,6 +275,7 @@ def simulate_batch(
     group_size: int | None = None,
     n_save: int = 0,
     devices=None,
+    integrator: Literal["lean", "diffeqsolve"] = "lean",
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -302,6 +304,11 @@ def simulate_batch(
         n_save: number of equally spaced samples for the peak metrics (0: no peaks, NaN).
         devices: sequence of devices to split the case axis over (``jax.shard_map``); None
             (default): all local devices of the default backend.
+        integrator: ``"ensemble"`` only: ``"lean"`` (default; `afbl_jax.sim.lean_loop`, our
+            while loop over diffrax's solver step and step-size controller: fastest, not
+            reverse-mode differentiable) or ``"diffeqsolve"`` (`diffrax.diffeqsolve`; use it
+            for `jax.grad` through the ensemble). Both take the same steps and agree case by
+            case.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -322,6 +329,10 @@ def simulate_batch(
     for name, v in (("chunk_size", chunk_size), ("group_size", group_size)):
         if v is not None and (isinstance(v, bool) or int(v) <= 0):
             raise ValueError(f"simulate_batch: {name} must be an integer > 0 or None, got {v!r}.")
+    if integrator not in INTEGRATORS:
+        raise ValueError(
+            f"simulate_batch: unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}."
+        )
     if group_size is not None and strategy != "ensemble":
         raise ValueError("simulate_batch: group_size applies to strategy 'ensemble' only.")
     if isinstance(n_save, bool) or int(n_save) < 0 or int(n_save) == 1:
@@ -389,4 +400,5 @@ def simulate_batch(
         None if group_size is None else int(group_size),
         int(n_save),
         devices,
+        integrator,
     )

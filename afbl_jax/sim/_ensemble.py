@@ -27,11 +27,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._typing import Array
-from ..metrics import BatchMetrics, peaks_over_samples, sample_peaks
+from ..metrics import (
+    BatchMetrics,
+    finish_peaks,
+    fold_peaks,
+    no_peaks,
+    peaks_over_samples,
+    sample_peaks,
+)
 from ..model import CHANNEL_INDEX
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
+from ._lean import lean_loop
 from ._solve import step_size_controller
 from ._status import STATUS_DIVERGED, STATUS_MAX_STEPS, STATUS_OK, status_from
+
+INTEGRATORS = ("lean", "diffeqsolve")
+"""How an ensemble is integrated: ``"lean"`` (`afbl_jax.sim.lean_loop` over diffrax's solver
+step and step-size controller; fastest, not reverse-mode differentiable) or ``"diffeqsolve"``
+(`diffrax.diffeqsolve`; differentiable with `jax.grad`)."""
 
 
 def ensemble_rms_norm(tree) -> Array:
@@ -91,10 +104,9 @@ def _field(part, fixed, n):
     return field
 
 
-def _metrics(state, frozen_time, t_stop, status, steps, rejected, peaks) -> BatchMetrics:
-    n = frozen_time.shape[0]
+def _metrics(state, t_final, status, steps, rejected, peaks) -> BatchMetrics:
+    n = t_final.shape[0]
     ones = jnp.ones((n,), jnp.int32)
-    t_final = (t_stop - frozen_time).astype(frozen_time.dtype)
     return BatchMetrics(
         ise_attitude=state.cost[:, 0],
         ise_altitude=state.cost[:, 1],
@@ -110,25 +122,45 @@ def _metrics(state, frozen_time, t_stop, status, steps, rejected, peaks) -> Batc
     )
 
 
-def solve_group(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save) -> BatchMetrics:
+def solve_group(
+    part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrator="lean"
+) -> BatchMetrics:
     """One ensemble of the n cases of ``part`` ((ClosedLoop, CaseInputs) leaves with leading
-    axis n) sharing ``fixed`` (leaves equal for every case, unbatched: evaluated once)."""
+    axis n) sharing ``fixed`` (leaves equal for every case, unbatched: evaluated once).
+    ``integrator``: one of `INTEGRATORS`. Both integrators control the step on the
+    closed-loop state with `ensemble_rms_norm` and start from diffrax's initial-step
+    heuristic, so they take the same steps until a case diverges."""
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}.")
     loop = eqx.combine(part, fixed)[0]  # static structure (digital or not, buffer sizes)
     t0 = _shared_or_per_case(lambda lp, inp: inp.scenario.t0, part, fixed, n).reshape(-1)[0]
     t1 = _shared_or_per_case(lambda lp, inp: inp.scenario.t1, part, fixed, n).reshape(-1)[0]
-    y0 = (
-        _per_case(lambda lp, inp: lp.initial_state(inp, dtype), part, fixed, n),
-        jnp.zeros((n,), dtype),
-    )
-    stepsize = step_size_controller(
-        rtol, atol, union_jump_times(part, fixed, n, dtype), norm=ensemble_rms_norm
-    )
-    term = diffrax.ODETerm(_field(part, fixed, n))
+    state0 = _per_case(lambda lp, inp: lp.initial_state(inp, dtype), part, fixed, n)
+    jump_ts = union_jump_times(part, fixed, n, dtype)
+    if integrator == "lean":
+        stepsize = step_size_controller(rtol, atol, jump_ts, norm=ensemble_rms_norm)
+        solve = _lean_digital if loop.digital else _lean_continuous
+        return solve(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save)
+    # the frozen time is bookkeeping: the step is controlled on the closed-loop state only
+    stepsize = step_size_controller(rtol, atol, jump_ts, norm=lambda y: ensemble_rms_norm(y[0]))
+    y0 = (state0, jnp.zeros((n,), dtype))
+    field = _field(part, fixed, n)
     solve = _digital if loop.digital else _continuous
-    return solve(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save)
+    return solve(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save)
 
 
-def _continuous(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save):
+def _first_step(field, stepsize, solver, t0, t1, y0, args=None):
+    """diffrax's initial step-size heuristic (`diffrax.PIDController.init`; `diffeqsolve`
+    itself starts with 0.01 s, as its heuristic does not apply to the direction-wrapped term
+    it integrates), so that `diffeqsolve` starts with the step `lean_loop` starts with."""
+    term = diffrax.ODETerm(field)
+    t_next, _ = stepsize.controller.init(
+        term, t0, t1, y0, None, args, solver.func, solver.error_order(term)
+    )
+    return t_next - t0
+
+
+def _continuous(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save):
     subs = [diffrax.SubSaveAt(t1=True)]
     if n_save:
         ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
@@ -143,11 +175,11 @@ def _continuous(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_s
 
         subs.append(diffrax.SubSaveAt(ts=ts, fn=save_peaks))
     sol = diffrax.diffeqsolve(
-        term,
+        diffrax.ODETerm(field),
         solver,
         t0,
         t1,
-        None,
+        _first_step(field, stepsize, solver, t0, t1, y0),
         y0,
         args=None,
         saveat=diffrax.SaveAt(subs=subs),
@@ -165,8 +197,7 @@ def _continuous(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_s
         peaks = jnp.full((n, 3), jnp.nan, dtype)
     return _metrics(
         state,
-        frozen_time,
-        t_stop,
+        t_final,
         status,
         sol.stats["num_steps"],
         sol.stats["num_rejected_steps"],
@@ -174,7 +205,8 @@ def _continuous(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_s
     )
 
 
-def _digital(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save):
+def _digital(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save):
+    term = diffrax.ODETerm(field)
     loop = eqx.combine(part, fixed)[0]
     max_samples = loop.sampling.max_samples
     # the group's one control rate (equal in every case: checked by simulate_batch)
@@ -262,4 +294,258 @@ def _digital(part, fixed, n, term, stepsize, solver, t0, t1, y0, dtype, max_step
         peaks = jax.vmap(case_peaks, in_axes=(0, 1, 1, 0), axis_size=n)(part, q_ts, u_ts, t_final)
     else:
         peaks = jnp.full((n, 3), jnp.nan, dtype)
-    return _metrics(state, frozen_time, t_reached, status, steps[0], steps[1], peaks)
+    return _metrics(state, t_final, status, steps[0], steps[1], peaks)
+
+
+# --------------------------------------------------------------------------- lean integrator
+
+
+def _save_times(t0, t1, n_save, dtype):
+    return t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
+
+
+def _lean_field(part, fixed, n):
+    """The ensemble vector field of the lean integrator on ClosedLoopState (n, ...); args =
+    (frozen (n,) bool, held commands (leading axis n) or None). Frozen cases have zero
+    derivatives."""
+
+    def one_case(t, state, frozen, p, held):
+        loop, inputs = eqx.combine(p, fixed)
+        dstate = loop.signals_and_derivative(t, state, inputs, held)[1]
+        return jax.tree.map(lambda d: jnp.where(frozen, jnp.zeros_like(d), d), dstate)
+
+    def field(t, y, args):
+        frozen, held = args
+        held_axis = None if held is None else 0
+        return jax.vmap(one_case, in_axes=(None, 0, 0, 0, held_axis), axis_size=n)(
+            t, y, frozen, part, held
+        )
+
+    return field
+
+
+def _diverged_fn(part, fixed, n):
+    """(t, ClosedLoopState (n, ...)) -> (n,) bool: the divergence test of every case."""
+
+    def one(t, state, p):
+        lp, inputs = eqx.combine(p, fixed)
+        return lp.diverged_at(t, state, inputs)
+
+    return lambda t, y: jax.vmap(one, in_axes=(None, 0, 0), axis_size=n)(t, y, part)
+
+
+def _sample_fn(part, fixed, n):
+    """Peak samples (n, 3) of every case at (t, state): `sample_peaks` of the error r(t) - q
+    and the controller's command (the signals `simulate` saves, without the plant)."""
+
+    def one(t, state, p):
+        lp, inputs = eqx.combine(p, fixed)
+        measured = lp.plant.to_paper_layout(state.plant)
+        u_cmd = lp.command(t, measured, state.controller, inputs)[0]
+        err = inputs.scenario.reference(t).r - state.plant[CHANNEL_INDEX]
+        return sample_peaks(err, u_cmd, inputs.vehicle, inputs.model)
+
+    return lambda t, y: jax.vmap(one, in_axes=(None, 0, 0), axis_size=n)(t, y, part)
+
+
+def _fold_samples(carry, ts, t_hi, counts, sample_at):
+    """Fold every save time ts[j] <= t_hi not yet taken (carry = (next index, running peaks
+    (n, 3))) into the running peaks; ``counts(t)``: (n,) whether a sample at t counts."""
+
+    def cond(c):
+        j, _ = c
+        return (j < ts.shape[0]) & (ts[jnp.minimum(j, ts.shape[0] - 1)] <= t_hi)
+
+    def body(c):
+        j, peaks = c
+        t = ts[j]
+        return j + 1, fold_peaks(peaks, sample_at(t), counts(t))
+
+    return jax.lax.while_loop(cond, body, carry)
+
+
+class _Cases(eqx.Module):
+    """Per-case bookkeeping of the lean ensemble: frozen (diverged) flags, the time a frozen
+    case ended (the end of the step where it crossed the limits) and the running peaks (next
+    save-time index, (n, 3) maxima; None without peaks)."""
+
+    frozen: Array
+    t_frozen: Array
+    peaks: tuple | None
+
+    def counts(self, t) -> Array:
+        """Whether a sample at t counts for each case (t at or before its run's end)."""
+        return ~self.frozen | (t <= self.t_frozen)
+
+    def t_final(self, t_stop) -> Array:
+        return jnp.where(self.frozen, self.t_frozen, t_stop)
+
+
+def _end_of_step(cases: _Cases, t1, y1, diverged, keep) -> _Cases:
+    """After an accepted step ending at t1: a case crossing the limits there is frozen from
+    now on and ends at t1 (as `simulate`'s divergence event stops a run at the end of the
+    step where it fires)."""
+    new = keep & ~cases.frozen & diverged(t1, y1)
+    return _Cases(cases.frozen | new, jnp.where(new, t1, cases.t_frozen), cases.peaks)
+
+
+def _lean_continuous(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save):
+    """The ensemble on `lean_loop`. After every accepted step: the divergence test (per case;
+    a diverged case is frozen from then on), and the peak samples at the save times inside the
+    step from diffrax's dense interpolation (the running form of `peaks_over_samples`)."""
+    ts = _save_times(t0, t1, n_save, dtype) if n_save else None
+    sample = _sample_fn(part, fixed, n)
+    diverged = _diverged_fn(part, fixed, n)
+
+    def after_step(cases, step, args, keep, at_boundary):
+        del at_boundary
+        cases = _end_of_step(cases, step.t1, step.y1, diverged, keep)
+        if n_save:
+            peaks = _fold_samples(
+                cases.peaks,
+                ts,
+                jnp.where(keep, step.t1, -jnp.inf),
+                cases.counts,
+                lambda t: sample(t, step.interpolation.evaluate(t)),
+            )
+            cases = _Cases(cases.frozen, cases.t_frozen, peaks)
+        return cases, None, (cases.frozen, None), jnp.asarray(False), jnp.asarray(False)
+
+    frozen0 = jnp.zeros((n,), bool)
+    peaks0 = (jnp.asarray(0, jnp.int32), no_peaks((n,), dtype)) if n_save else None
+    out = lean_loop(
+        _lean_field(part, fixed, n),
+        solver,
+        stepsize,
+        t0,
+        t1,
+        state0,
+        (frozen0, None),
+        max_steps=max_steps,
+        extra=_Cases(frozen0, jnp.full((n,), t0, dtype), peaks0),
+        after_step=after_step,
+    )
+    cases = out.extra
+    status = status_from(out.result, cases.frozen)
+    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
+    return _metrics(
+        out.y, cases.t_final(out.t), status, out.num_steps, out.num_rejected_steps, peaks
+    )
+
+
+def _lean_digital(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save):
+    """Digital control on `lean_loop`: steps land on the sample instants (the held command
+    jumps there); a step ending on one runs the sample instant for every case (as the
+    interval solves of `simulate` do: the controller's Euler update, then `sample_instant`);
+    peaks from the states at the sample instants, linearly interpolated (as `simulate`)."""
+    loop = eqx.combine(part, fixed)[0]
+    max_samples = loop.sampling.max_samples
+    h = _shared_or_per_case(
+        lambda lp, inp: 1.0 / lp.sampling.control_rate.astype(dtype), part, fixed, n
+    ).reshape(-1)[0]
+    diverged = _diverged_fn(part, fixed, n)
+
+    def instant(k, y, buf):
+        def one(p, yi, bi):
+            lp, inputs = eqx.combine(p, fixed)
+            return sample_instant(lp, k, sample_time(t0, h, k), yi, bi, inputs)
+
+        return jax.vmap(one, axis_size=n)(part, y, buf)
+
+    buf0 = jax.vmap(lambda p, y: initial_buffer(eqx.combine(p, fixed)[0], y), axis_size=n)(
+        part, state0
+    )
+    k0 = jnp.asarray(0, jnp.int32)
+    state0, buf0, held0, dctrl0 = instant(k0, state0, buf0)
+    ts = _save_times(t0, t1, n_save, dtype) if n_save else None
+
+    def interval_end(k):
+        return jnp.minimum(sample_time(t0, h, k + 1), t1)
+
+    def held_sampler(k, q_prev, e_prev, q_end, e_end, u_now, u_next):
+        """Peak samples (n, 3) at a save time t in (e_prev, e_end]: q linearly interpolated
+        between the sample instants, the command held over t's sample interval."""
+
+        def one(t, p, qa, qb, ua, ub):
+            inputs = eqx.combine(p, fixed)[1]
+            knots = jnp.stack([e_prev, e_end])
+            q = jax.vmap(lambda a, b: jnp.interp(t, knots, jnp.stack([a, b])))(qa, qb)
+            u = jnp.where(held_index(t, t0, h, max_samples) > k, ub, ua)
+            err = inputs.scenario.reference(t).r - q
+            return sample_peaks(err, u, inputs.vehicle, inputs.model)
+
+        return lambda t: jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0), axis_size=n)(
+            t, part, q_prev, q_end, u_now, u_next
+        )
+
+    def after_step(extra, step, args, keep, at_boundary):
+        cases, k, buf, dctrl, q_prev, e_prev = extra
+        held = args[1]
+        cases = _end_of_step(cases, step.t1, step.y1, diverged, keep)
+
+        def at_instant():
+            y = step.y1
+            live = ~cases.frozen[:, None]
+            y = eqx.tree_at(
+                lambda s: s.controller, y, jnp.where(live, y.controller + h * dctrl, y.controller)
+            )
+            e_end = interval_end(k)
+            y_next, buf_next, held_next, dctrl_next = instant(k + 1, y, buf)
+            q_end = y.plant[:, CHANNEL_INDEX]
+            peaks = cases.peaks
+            if n_save:
+                sample_at = held_sampler(
+                    k, q_prev, e_prev, q_end, e_end, held.u_command, held_next.u_command
+                )
+                peaks = _fold_samples(peaks, ts, e_end, cases.counts, sample_at)
+            done = _Cases(cases.frozen, cases.t_frozen, peaks)
+            more = (e_end < t1) & (k + 1 < max_samples)
+
+            def choose(a, b):
+                return jax.tree.map(lambda x, z: jnp.where(more, x, z), a, b)
+
+            extra_out = (
+                done,
+                *choose((k + 1, buf_next, dctrl_next), (k, buf, dctrl)),
+                q_end,
+                e_end,
+            )
+            held_out = choose(held_next, held)
+            # out of samples before t1: stop (reported as max_steps)
+            return extra_out, choose(y_next, y), held_out, jnp.asarray(True), ~more & (e_end < t1)
+
+        def inside():
+            return (
+                (cases, k, buf, dctrl, q_prev, e_prev),
+                step.y1,
+                held,
+                jnp.asarray(False),
+                (jnp.asarray(False)),
+            )
+
+        extra, y1, held, jumped, stop = jax.lax.cond(at_boundary, at_instant, inside)
+        return extra, y1, (extra[0].frozen, held), jumped, stop
+
+    frozen0 = jnp.zeros((n,), bool)
+    peaks0 = (jnp.asarray(0, jnp.int32), no_peaks((n,), dtype)) if n_save else None
+    cases0 = _Cases(frozen0, jnp.full((n,), t0, dtype), peaks0)
+    extra0 = (cases0, k0, buf0, dctrl0, state0.plant[:, CHANNEL_INDEX], t0)
+    out = lean_loop(
+        _lean_field(part, fixed, n),
+        solver,
+        stepsize,
+        t0,
+        t1,
+        state0,
+        (frozen0, held0),
+        max_steps=max_steps,
+        extra=extra0,
+        after_step=after_step,
+        boundary=lambda extra: interval_end(extra[1]),
+    )
+    cases = out.extra[0]
+    status = status_from(out.result, cases.frozen)
+    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
+    return _metrics(
+        out.y, cases.t_final(out.t), status, out.num_steps, out.num_rejected_steps, peaks
+    )
