@@ -80,12 +80,9 @@ def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrat
 
 
 def _ensemble(group_size, part, fixed, n, *rest) -> BatchMetrics:
-    if group_size is None or group_size >= n:
-        return solve_group(part, fixed, n, *rest)
-    groups = n // group_size
-    split = jax.tree.map(lambda x: x.reshape(groups, group_size, *x.shape[1:]), part)
-    out = jax.vmap(lambda p: solve_group(p, fixed, group_size, *rest), axis_size=groups)(split)
-    return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
+    return solve_group(
+        part, fixed, n, *rest, group_size=None if group_size is None else min(group_size, n)
+    )
 
 
 def case_layout(n: int, n_dev: int, chunk_size: int | None, group: int):
@@ -142,10 +139,12 @@ def _run(
         if n_chunks == 1:
             return solve(p, fx)
         split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), p)
-        # map over chunk indices (not over `split`, which is empty when every leaf is shared)
-        out = jax.lax.map(
-            lambda i: solve(jax.tree.map(lambda x: x[i], split), fx), jnp.arange(n_chunks)
-        )
+        if jax.tree.leaves(split):
+            # scanned over the chunks' inputs: each chunk's slice is materialised once (a
+            # dynamic index inside the solve was re-read at every use: measured 5 % slower)
+            out = jax.lax.map(lambda q: solve(q, fx), split)
+        else:  # every leaf is shared: map over chunk indices
+            out = jax.lax.map(lambda i: solve(split, fx), jnp.arange(n_chunks))
         return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
 
     part = jax.tree.map(lambda x: x[index], part)

@@ -1,21 +1,33 @@
-"""The ensemble: a group of cases solved as ONE ODE system with one shared step sequence.
+"""Ensembles: groups of cases, each solved as ONE ODE system with one shared step sequence.
 
-The group's state leaves have a leading case axis; step-size control uses `ensemble_rms_norm`,
-the maximum over cases of each case's RMS scaled error, so every case meets its own tolerance
-on every step, and the vector field is evaluated for all cases at once.
+A group's step-size control uses `ensemble_rms_norm`, the maximum over its cases of each case's
+RMS scaled error, so every case meets its own tolerance on every step, and the vector field is
+evaluated for all cases at once. `solve_group` solves n cases in groups of ``group_size``
+consecutive cases (each group its own steps) with one of two integrators (`INTEGRATORS`):
 
-- Divergence: a case crossing the `DivergenceLimits`, reaching a non-finite state or producing
-  a non-finite derivative is *frozen*: its derivatives are zero from then on, so its cost
-  integrals stop at the crossing, it cannot stall the shared step size, and its status is
-  ``diverged``. The freeze is made persistent by an extra per-case state that grows at rate 1
-  while frozen (``t_final = t_stop - frozen_time``).
-- Jump times: the shared steps land on the union of the group's jump times.
-- Digital control: the group's cases share their sample instants (one control rate per group):
-  a scan over the samples, `afbl_jax.sim.sample_instant` for every case, then one ensemble
-  solve per sample interval with the held commands; a frozen case keeps its state.
-- Peaks: sampled at ``n_save`` equally spaced times (continuous: diffrax ``SubSaveAt(ts, fn)``
-  keeping three numbers per case and sample; digital: the states at the sample instants,
-  interpolated as `simulate` does), then `afbl_jax.metrics.peaks_over_samples`.
+- ``"lean"`` (default): `afbl_jax.sim.lean_loop`, our while loop over diffrax's solver step
+  and step-size controller, all groups advanced together on one state whose leaves have the
+  case axis last. Divergence: after every accepted step each case is tested
+  (`ClosedLoop.diverged_at`); a case past the limits (or non-finite) is frozen from then on
+  (zero derivatives: its cost integrals stop, it cannot stall its group's step size), its
+  status is ``diverged`` and it ends at the end of that step, as `simulate`'s divergence
+  event stops a single run. Peaks: the save times inside each accepted step, from diffrax's
+  dense interpolation (digital control: the states at the sample instants, linearly
+  interpolated, and the held command, as `simulate`), folded into running maxima
+  (`afbl_jax.metrics.fold_peaks`). Digital control: a group's steps land on its sample
+  instants (the held command jumps there); a step ending on one runs
+  `afbl_jax.sim.sample_instant` for the group's cases. Not reverse-mode differentiable.
+- ``"diffeqsolve"``: `diffrax.diffeqsolve` per group (groups vectorised with `jax.vmap`),
+  differentiable with `jax.grad` (diffrax's checkpointed adjoint). Divergence freezes a case
+  inside the vector field (any stage past the limits), made persistent by an extra per-case
+  state growing at rate 1 while frozen (``t_final = t_stop - frozen_time``). Peaks: diffrax
+  ``SubSaveAt(ts, fn)`` keeping three numbers per case and save time (digital: the states at
+  the sample instants, interpolated), then `afbl_jax.metrics.peaks_over_samples`. Digital
+  control: a scan over the sample instants with one ensemble solve per sample interval.
+
+Both control the step on the closed-loop state only and start from diffrax's initial-step
+heuristic, so on cases that do not diverge they take the same steps (tested to agree to
+round-off). In both, the steps land on the union of the group's jump times.
 """
 
 from __future__ import annotations
@@ -37,7 +49,7 @@ from ..metrics import (
 )
 from ..model import CHANNEL_INDEX
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
-from ._lean import lean_loop
+from ._lean import Groups, lean_loop
 from ._solve import step_size_controller
 from ._status import STATUS_DIVERGED, STATUS_MAX_STEPS, STATUS_OK, status_from
 
@@ -47,17 +59,24 @@ step and step-size controller; fastest, not reverse-mode differentiable) or ``"d
 (`diffrax.diffeqsolve`; differentiable with `jax.grad`)."""
 
 
-def ensemble_rms_norm(tree) -> Array:
-    """Max over cases (leading axis) of each case's RMS over all its other entries.
+def ensemble_rms_norm(tree, case_axis: int = 0) -> Array:
+    """Max over cases (axis ``case_axis``: 0, the leading axis, or -1, the last) of each
+    case's RMS over all its other entries.
 
     Used as the `diffrax.PIDController` norm of the ensemble: the shared step is accepted only
     when every case's own RMS scaled error is below 1. Non-finite errors stay non-finite (the
     step is rejected).
     """
-    leaves = jax.tree.leaves(tree)
+    if case_axis not in (0, -1):
+        raise ValueError(f"case_axis must be 0 or -1, got {case_axis!r}.")
+    leaves = [x if case_axis == 0 else jnp.moveaxis(x, -1, 0) for x in jax.tree.leaves(tree)]
     sq = sum(jnp.sum(jnp.reshape(x, (x.shape[0], -1)) ** 2, axis=1) for x in leaves)
     count = sum(int(np.prod(x.shape[1:])) for x in leaves)
     return jnp.sqrt(jnp.max(sq) / count)
+
+
+def _last_axis_norm(tree) -> Array:
+    return ensemble_rms_norm(tree, case_axis=-1)
 
 
 def _per_case(fn, part, fixed, n):
@@ -123,30 +142,58 @@ def _metrics(state, t_final, status, steps, rejected, peaks) -> BatchMetrics:
 
 
 def solve_group(
-    part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrator="lean"
+    part,
+    fixed,
+    n,
+    solver,
+    rtol,
+    atol,
+    dtype,
+    max_steps,
+    n_save,
+    integrator="lean",
+    group_size=None,
 ) -> BatchMetrics:
-    """One ensemble of the n cases of ``part`` ((ClosedLoop, CaseInputs) leaves with leading
-    axis n) sharing ``fixed`` (leaves equal for every case, unbatched: evaluated once).
-    ``integrator``: one of `INTEGRATORS`. Both integrators control the step on the
-    closed-loop state with `ensemble_rms_norm` and start from diffrax's initial-step
-    heuristic, so they take the same steps until a case diverges."""
+    """The n cases of ``part`` ((ClosedLoop, CaseInputs) leaves with leading axis n, sharing
+    ``fixed``: leaves equal for every case, unbatched, evaluated once per group) in groups of
+    ``group_size`` consecutive cases (None: one group), each one ensemble; ``integrator``:
+    one of `INTEGRATORS` (module docstring)."""
     if integrator not in INTEGRATORS:
         raise ValueError(f"unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}.")
+    g = n if group_size is None else int(group_size)
+    if n % g:
+        raise ValueError(f"solve_group: {n} cases do not split into groups of {g}.")
+    groups = Groups(n // g, g)
     loop = eqx.combine(part, fixed)[0]  # static structure (digital or not, buffer sizes)
     t0 = _shared_or_per_case(lambda lp, inp: inp.scenario.t0, part, fixed, n).reshape(-1)[0]
     t1 = _shared_or_per_case(lambda lp, inp: inp.scenario.t1, part, fixed, n).reshape(-1)[0]
-    state0 = _per_case(lambda lp, inp: lp.initial_state(inp, dtype), part, fixed, n)
-    jump_ts = union_jump_times(part, fixed, n, dtype)
+    part_g = jax.tree.map(lambda x: x.reshape(groups.count, g, *x.shape[1:]), part)
     if integrator == "lean":
-        stepsize = step_size_controller(rtol, atol, jump_ts, norm=ensemble_rms_norm)
+        jumps = jax.vmap(lambda p: union_jump_times(p, fixed, g, dtype))(part_g)
+        controllers = eqx.filter_vmap(
+            lambda j: step_size_controller(rtol, atol, j, norm=_last_axis_norm)
+        )(jumps)
         solve = _lean_digital if loop.digital else _lean_continuous
-        return solve(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save)
-    # the frozen time is bookkeeping: the step is controlled on the closed-loop state only
-    stepsize = step_size_controller(rtol, atol, jump_ts, norm=lambda y: ensemble_rms_norm(y[0]))
-    y0 = (state0, jnp.zeros((n,), dtype))
-    field = _field(part, fixed, n)
-    solve = _digital if loop.digital else _continuous
-    return solve(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save)
+        return solve(
+            part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
+        )
+
+    def one_group(p):
+        state0 = _per_case(lambda lp, inp: lp.initial_state(inp, dtype), p, fixed, g)
+        # the frozen time is bookkeeping: the step is controlled on the closed-loop state only
+        stepsize = step_size_controller(
+            rtol,
+            atol,
+            union_jump_times(p, fixed, g, dtype),
+            norm=lambda y: ensemble_rms_norm(y[0]),
+        )
+        y0 = (state0, jnp.zeros((g,), dtype))
+        solve = _digital if loop.digital else _continuous
+        args = (p, fixed, g, _field(p, fixed, g), stepsize, solver, t0, t1, y0, dtype)
+        return solve(*args, max_steps, n_save)
+
+    out = jax.vmap(one_group)(part_g)
+    return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
 
 
 def _first_step(field, stepsize, solver, t0, t1, y0, args=None):
@@ -304,248 +351,305 @@ def _save_times(t0, t1, n_save, dtype):
     return t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
 
 
-def _lean_field(part, fixed, n):
-    """The ensemble vector field of the lean integrator on ClosedLoopState (n, ...); args =
-    (frozen (n,) bool, held commands (leading axis n) or None). Frozen cases have zero
-    derivatives."""
+def _to_last(tree):
+    return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), tree)
+
+
+def _to_first(tree):
+    return jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0), tree)
+
+
+def _at_group_values(fn, part_g, fixed, groups: Groups):
+    """``run(group_args, *trees)``: ``fn(*group_args_i, loop, inputs, *case_values)`` for
+    every case, with ``group_args`` a tuple of per-group arrays (G,) and ``trees`` per-case
+    pytrees with the case axis last; outputs with the case axis first (n, ...). Values shared
+    by a group's cases are computed once per group."""
+
+    def one_group(gargs, p, *trees):
+        def one_case(pp, *xs):
+            return fn(*gargs, *eqx.combine(pp, fixed), *xs)
+
+        return jax.vmap(one_case, in_axes=(0,) + (-1,) * len(trees))(p, *trees)
+
+    def run(group_args, *trees):
+        out = jax.vmap(one_group, in_axes=(0, 0) + (-2,) * len(trees))(
+            tuple(group_args), part_g, *(groups.view(x) for x in trees)
+        )
+        return jax.tree.map(lambda x: x.reshape(groups.count * groups.size, *x.shape[2:]), out)
+
+    return run
+
+
+def _lean_group_field(fixed):
+    """The vector field of one group for `lean_loop`: state leaves (..., g), args = (frozen
+    (g,), held commands (leaves (..., g)) or None); frozen cases have zero derivatives."""
 
     def one_case(t, state, frozen, p, held):
         loop, inputs = eqx.combine(p, fixed)
         dstate = loop.signals_and_derivative(t, state, inputs, held)[1]
         return jax.tree.map(lambda d: jnp.where(frozen, jnp.zeros_like(d), d), dstate)
 
-    def field(t, y, args):
+    def group_field(t, y, args, p):
         frozen, held = args
-        held_axis = None if held is None else 0
-        return jax.vmap(one_case, in_axes=(None, 0, 0, 0, held_axis), axis_size=n)(
-            t, y, frozen, part, held
+        held_axis = None if held is None else -1
+        return jax.vmap(one_case, in_axes=(None, -1, -1, 0, held_axis), out_axes=-1)(
+            t, y, frozen, p, held
         )
 
-    return field
+    return group_field
 
 
-def _diverged_fn(part, fixed, n):
-    """(t, ClosedLoopState (n, ...)) -> (n,) bool: the divergence test of every case."""
-
-    def one(t, state, p):
-        lp, inputs = eqx.combine(p, fixed)
-        return lp.diverged_at(t, state, inputs)
-
-    return lambda t, y: jax.vmap(one, in_axes=(None, 0, 0), axis_size=n)(t, y, part)
-
-
-def _sample_fn(part, fixed, n):
-    """Peak samples (n, 3) of every case at (t, state): `sample_peaks` of the error r(t) - q
-    and the controller's command (the signals `simulate` saves, without the plant)."""
-
-    def one(t, state, p):
-        lp, inputs = eqx.combine(p, fixed)
-        measured = lp.plant.to_paper_layout(state.plant)
-        u_cmd = lp.command(t, measured, state.controller, inputs)[0]
-        err = inputs.scenario.reference(t).r - state.plant[CHANNEL_INDEX]
-        return sample_peaks(err, u_cmd, inputs.vehicle, inputs.model)
-
-    return lambda t, y: jax.vmap(one, in_axes=(None, 0, 0), axis_size=n)(t, y, part)
-
-
-def _fold_samples(carry, ts, t_hi, counts, sample_at):
-    """Fold every save time ts[j] <= t_hi not yet taken (carry = (next index, running peaks
-    (n, 3))) into the running peaks; ``counts(t)``: (n,) whether a sample at t counts."""
-
-    def cond(c):
-        j, _ = c
-        return (j < ts.shape[0]) & (ts[jnp.minimum(j, ts.shape[0] - 1)] <= t_hi)
-
-    def body(c):
-        j, peaks = c
-        t = ts[j]
-        return j + 1, fold_peaks(peaks, sample_at(t), counts(t))
-
-    return jax.lax.while_loop(cond, body, carry)
+def _peak_sample(t, loop, inputs, state):
+    """`sample_peaks` of one case at (t, state): the error r(t) - q and the controller's
+    command (the signals `simulate` saves, without the plant)."""
+    measured = loop.plant.to_paper_layout(state.plant)
+    u_cmd = loop.command(t, measured, state.controller, inputs)[0]
+    err = inputs.scenario.reference(t).r - state.plant[CHANNEL_INDEX]
+    return sample_peaks(err, u_cmd, inputs.vehicle, inputs.model)
 
 
 class _Cases(eqx.Module):
     """Per-case bookkeeping of the lean ensemble: frozen (diverged) flags, the time a frozen
-    case ended (the end of the step where it crossed the limits) and the running peaks (next
-    save-time index, (n, 3) maxima; None without peaks)."""
+    case ended (the end of the step where it crossed the limits) and the running peaks (each
+    group's next save-time index (G,), (n, 3) maxima; None without peaks)."""
 
     frozen: Array
     t_frozen: Array
     peaks: tuple | None
 
     def counts(self, t) -> Array:
-        """Whether a sample at t counts for each case (t at or before its run's end)."""
+        """Whether a sample at per-case times t (n,) counts (at or before the run's end)."""
         return ~self.frozen | (t <= self.t_frozen)
 
     def t_final(self, t_stop) -> Array:
         return jnp.where(self.frozen, self.t_frozen, t_stop)
 
 
-def _end_of_step(cases: _Cases, t1, y1, diverged, keep) -> _Cases:
-    """After an accepted step ending at t1: a case crossing the limits there is frozen from
-    now on and ends at t1 (as `simulate`'s divergence event stops a run at the end of the
-    step where it fires)."""
-    new = keep & ~cases.frozen & diverged(t1, y1)
-    return _Cases(cases.frozen | new, jnp.where(new, t1, cases.t_frozen), cases.peaks)
+def _freeze(cases: _Cases, t, y, diverged, groups: Groups) -> _Cases:
+    """Before a step from the groups' accepted times t (G,) and state y: a case past the
+    limits there is frozen from now on and ends at t, the end of the step where it crossed
+    them (as `simulate`'s divergence event stops a run at the end of the step where it
+    fires)."""
+    new = ~cases.frozen & diverged((t,), y)
+    t_frozen = jnp.where(new, groups.per_case(t), cases.t_frozen)
+    return _Cases(cases.frozen | new, t_frozen, cases.peaks)
 
 
-def _lean_continuous(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save):
-    """The ensemble on `lean_loop`. After every accepted step: the divergence test (per case;
-    a diverged case is frozen from then on), and the peak samples at the save times inside the
-    step from diffrax's dense interpolation (the running form of `peaks_over_samples`)."""
+def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
+    """Fold every save time ts[j] <= t_hi[i] not yet taken by group i into the running peaks
+    (``peaks`` = (next index per group (G,), maxima (n, 3))); ``sample_at(t)``: the (n, 3)
+    samples at per-group times t (G,); ``counts(t_case)``: (n,) whether a sample counts."""
+    last = ts.shape[0] - 1
+
+    def pending(j):
+        return (j <= last) & (ts[jnp.minimum(j, last)] <= t_hi)
+
+    def body(c):
+        j, running = c
+        due = pending(j)
+        t = ts[jnp.minimum(j, last)]
+        use = groups.per_case(due) & counts(groups.per_case(t))
+        return j + due, fold_peaks(running, sample_at(t), use)
+
+    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, peaks)
+
+
+def _lean_result(out, cases: _Cases, groups: Groups, dtype, n_save) -> BatchMetrics:
+    status = jnp.where(
+        cases.frozen,
+        STATUS_DIVERGED,
+        groups.per_case(status_from(out.result, jnp.zeros_like(out.t, bool))),
+    ).astype(jnp.int32)
+    n = groups.count * groups.size
+    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
+    return _metrics(
+        _to_first(out.y),
+        cases.t_final(groups.per_case(out.t)),
+        status,
+        groups.per_case(out.num_steps),
+        groups.per_case(out.num_rejected_steps),
+        peaks,
+    )
+
+
+def _lean_start(part, fixed, n, dtype, n_save, G):
+    state0 = _to_last(_per_case(lambda lp, inp: lp.initial_state(inp, dtype), part, fixed, n))
+    frozen = jnp.zeros((n,), bool)
+    peaks = (jnp.zeros((G,), jnp.int32), no_peaks((n,), dtype)) if n_save else None
+    return state0, _Cases(frozen, jnp.zeros((n,), dtype), peaks)
+
+
+def _lean_continuous(
+    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
+):
+    """The ensemble on `lean_loop`. After every accepted step: the divergence test (a
+    diverged case is frozen from then on) and the peak samples at the save times inside the
+    step, from diffrax's dense interpolation."""
+    n = groups.count * groups.size
+    state0, cases0 = _lean_start(part, fixed, n, dtype, n_save, groups.count)
     ts = _save_times(t0, t1, n_save, dtype) if n_save else None
-    sample = _sample_fn(part, fixed, n)
-    diverged = _diverged_fn(part, fixed, n)
+    sample = _at_group_values(_peak_sample, part_g, fixed, groups)
+    diverged = _at_group_values(
+        lambda t, lp, inp, state: lp.diverged_at(t, state, inp), part_g, fixed, groups
+    )
+
+    def before_step(cases, t, y, args):
+        cases = _freeze(cases, t, y, diverged, groups)
+        return cases, (cases.frozen, None)
 
     def after_step(cases, step, args, keep, at_boundary):
-        del at_boundary
-        cases = _end_of_step(cases, step.t1, step.y1, diverged, keep)
         if n_save:
             peaks = _fold_samples(
                 cases.peaks,
                 ts,
                 jnp.where(keep, step.t1, -jnp.inf),
                 cases.counts,
-                lambda t: sample(t, step.interpolation.evaluate(t)),
+                lambda t: sample((t,), step.evaluate(groups.per_case(t))),
+                groups,
             )
             cases = _Cases(cases.frozen, cases.t_frozen, peaks)
-        return cases, None, (cases.frozen, None), jnp.asarray(False), jnp.asarray(False)
+        false = jnp.zeros_like(keep)
+        return cases, None, args, false, false
 
-    frozen0 = jnp.zeros((n,), bool)
-    peaks0 = (jnp.asarray(0, jnp.int32), no_peaks((n,), dtype)) if n_save else None
     out = lean_loop(
-        _lean_field(part, fixed, n),
+        _lean_group_field(fixed),
+        part_g,
         solver,
-        stepsize,
+        controllers,
         t0,
         t1,
         state0,
-        (frozen0, None),
+        (cases0.frozen, None),
+        groups=groups,
         max_steps=max_steps,
-        extra=_Cases(frozen0, jnp.full((n,), t0, dtype), peaks0),
+        extra=cases0,
         after_step=after_step,
+        before_step=before_step,
     )
-    cases = out.extra
-    status = status_from(out.result, cases.frozen)
-    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
-    return _metrics(
-        out.y, cases.t_final(out.t), status, out.num_steps, out.num_rejected_steps, peaks
-    )
+    return _lean_result(out, out.extra, groups, dtype, n_save)
 
 
-def _lean_digital(part, fixed, n, stepsize, solver, t0, t1, state0, dtype, max_steps, n_save):
-    """Digital control on `lean_loop`: steps land on the sample instants (the held command
-    jumps there); a step ending on one runs the sample instant for every case (as the
-    interval solves of `simulate` do: the controller's Euler update, then `sample_instant`);
-    peaks from the states at the sample instants, linearly interpolated (as `simulate`)."""
+def _held_sample(t, k, e_prev, e_end, h, t0, max_samples, loop, inputs, qa, qb, ua, ub):
+    """`sample_peaks` of one case at a save time t in (e_prev, e_end]: q linearly
+    interpolated between the sample instants (states qa, qb), the command held over t's
+    sample interval (ua: interval k, ub: interval k + 1), as `simulate` samples digital
+    control."""
+    del loop
+    knots = jnp.stack([e_prev, e_end])
+    q = jax.vmap(lambda a, b: jnp.interp(t, knots, jnp.stack([a, b])))(qa, qb)
+    u = jnp.where(held_index(t, t0, h, max_samples) > k, ub, ua)
+    return sample_peaks(inputs.scenario.reference(t).r - q, u, inputs.vehicle, inputs.model)
+
+
+def _lean_digital(
+    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
+):
+    """Digital control on `lean_loop`: each group's steps land on its sample instants (its
+    held command jumps there); a step ending on one runs the sample instant for the group's
+    cases, as the interval solves of `simulate` do (the controller's Euler update, then
+    `sample_instant`). Peaks from the states at the sample instants, linearly interpolated,
+    and the held command (as `simulate`)."""
+    n, G = groups.count * groups.size, groups.count
     loop = eqx.combine(part, fixed)[0]
     max_samples = loop.sampling.max_samples
-    h = _shared_or_per_case(
-        lambda lp, inp: 1.0 / lp.sampling.control_rate.astype(dtype), part, fixed, n
-    ).reshape(-1)[0]
-    diverged = _diverged_fn(part, fixed, n)
-
-    def instant(k, y, buf):
-        def one(p, yi, bi):
-            lp, inputs = eqx.combine(p, fixed)
-            return sample_instant(lp, k, sample_time(t0, h, k), yi, bi, inputs)
-
-        return jax.vmap(one, axis_size=n)(part, y, buf)
-
-    buf0 = jax.vmap(lambda p, y: initial_buffer(eqx.combine(p, fixed)[0], y), axis_size=n)(
-        part, state0
+    # each group's one control rate (equal in its cases: checked by simulate_batch)
+    h_case = _per_case(lambda lp, inp: 1.0 / lp.sampling.control_rate.astype(dtype), part, fixed, n)
+    h = h_case.reshape(G, groups.size)[:, 0]
+    state0, cases0 = _lean_start(part, fixed, n, dtype, n_save, G)
+    diverged = _at_group_values(
+        lambda t, lp, inp, state: lp.diverged_at(t, state, inp), part_g, fixed, groups
     )
-    k0 = jnp.asarray(0, jnp.int32)
-    state0, buf0, held0, dctrl0 = instant(k0, state0, buf0)
     ts = _save_times(t0, t1, n_save, dtype) if n_save else None
+
+    def sample_instants(k, y, buf):
+        def one(kk, hh, lp, inp, yy, bb):
+            return sample_instant(lp, kk, sample_time(t0, hh, kk), yy, bb, inp)
+
+        y1, buf1, held, dctrl = _at_group_values(one, part_g, fixed, groups)((k, h), y, buf)
+        return _to_last(y1), _to_last(buf1), _to_last(held), _to_last(dctrl)
 
     def interval_end(k):
         return jnp.minimum(sample_time(t0, h, k + 1), t1)
 
-    def held_sampler(k, q_prev, e_prev, q_end, e_end, u_now, u_next):
-        """Peak samples (n, 3) at a save time t in (e_prev, e_end]: q linearly interpolated
-        between the sample instants, the command held over t's sample interval."""
-
-        def one(t, p, qa, qb, ua, ub):
-            inputs = eqx.combine(p, fixed)[1]
-            knots = jnp.stack([e_prev, e_end])
-            q = jax.vmap(lambda a, b: jnp.interp(t, knots, jnp.stack([a, b])))(qa, qb)
-            u = jnp.where(held_index(t, t0, h, max_samples) > k, ub, ua)
-            err = inputs.scenario.reference(t).r - q
-            return sample_peaks(err, u, inputs.vehicle, inputs.model)
-
-        return lambda t: jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0), axis_size=n)(
-            t, part, q_prev, q_end, u_now, u_next
-        )
+    held_sample = _at_group_values(
+        lambda t, k, ea, eb, hh, lp, inp, qa, qb, ua, ub: _held_sample(
+            t, k, ea, eb, hh, t0, max_samples, lp, inp, qa, qb, ua, ub
+        ),
+        part_g,
+        fixed,
+        groups,
+    )
 
     def after_step(extra, step, args, keep, at_boundary):
         cases, k, buf, dctrl, q_prev, e_prev = extra
         held = args[1]
-        cases = _end_of_step(cases, step.t1, step.y1, diverged, keep)
+        on = groups.per_case(at_boundary)
+        y = step.y1
+        update = on & ~cases.frozen
+        y = eqx.tree_at(
+            lambda s: s.controller,
+            y,
+            jnp.where(update, y.controller + groups.per_case(h) * dctrl, y.controller),
+        )
+        e_end = interval_end(k)
+        _, buf_next, held_next, dctrl_next = sample_instants(k + 1, y, buf)
+        q_end = y.plant[CHANNEL_INDEX]
+        peaks = cases.peaks
+        if n_save:
 
-        def at_instant():
-            y = step.y1
-            live = ~cases.frozen[:, None]
-            y = eqx.tree_at(
-                lambda s: s.controller, y, jnp.where(live, y.controller + h * dctrl, y.controller)
-            )
-            e_end = interval_end(k)
-            y_next, buf_next, held_next, dctrl_next = instant(k + 1, y, buf)
-            q_end = y.plant[:, CHANNEL_INDEX]
-            peaks = cases.peaks
-            if n_save:
-                sample_at = held_sampler(
-                    k, q_prev, e_prev, q_end, e_end, held.u_command, held_next.u_command
+            def sample_at(t):
+                return held_sample(
+                    (t, k, e_prev, e_end, h), q_prev, q_end, held.u_command, held_next.u_command
                 )
-                peaks = _fold_samples(peaks, ts, e_end, cases.counts, sample_at)
-            done = _Cases(cases.frozen, cases.t_frozen, peaks)
-            more = (e_end < t1) & (k + 1 < max_samples)
 
-            def choose(a, b):
-                return jax.tree.map(lambda x, z: jnp.where(more, x, z), a, b)
-
-            extra_out = (
-                done,
-                *choose((k + 1, buf_next, dctrl_next), (k, buf, dctrl)),
-                q_end,
-                e_end,
+            peaks = _fold_samples(
+                peaks, ts, jnp.where(at_boundary, e_end, -jnp.inf), cases.counts, sample_at, groups
             )
-            held_out = choose(held_next, held)
-            # out of samples before t1: stop (reported as max_steps)
-            return extra_out, choose(y_next, y), held_out, jnp.asarray(True), ~more & (e_end < t1)
+        more = at_boundary & (e_end < t1) & (k + 1 < max_samples)
+        more_case = groups.per_case(more)
 
-        def inside():
-            return (
-                (cases, k, buf, dctrl, q_prev, e_prev),
-                step.y1,
-                held,
-                jnp.asarray(False),
-                (jnp.asarray(False)),
-            )
+        def choose(mask, a, b):
+            return jax.tree.map(lambda x, z: jnp.where(mask, x, z), a, b)
 
-        extra, y1, held, jumped, stop = jax.lax.cond(at_boundary, at_instant, inside)
-        return extra, y1, (extra[0].frozen, held), jumped, stop
+        extra = (
+            _Cases(cases.frozen, cases.t_frozen, peaks),
+            jnp.where(more, k + 1, k),
+            choose(more_case, buf_next, buf),
+            choose(more_case, dctrl_next, dctrl),
+            choose(on, q_end, q_prev),
+            jnp.where(at_boundary, e_end, e_prev),
+        )
+        held = choose(more_case, held_next, held)
+        # out of samples before t1: stop (reported as max_steps)
+        stop = at_boundary & ~more & (e_end < t1)
+        return extra, y, (cases.frozen, held), at_boundary, stop
 
-    frozen0 = jnp.zeros((n,), bool)
-    peaks0 = (jnp.asarray(0, jnp.int32), no_peaks((n,), dtype)) if n_save else None
-    cases0 = _Cases(frozen0, jnp.full((n,), t0, dtype), peaks0)
-    extra0 = (cases0, k0, buf0, dctrl0, state0.plant[:, CHANNEL_INDEX], t0)
+    def before_step(extra, t, y, args):
+        cases = _freeze(extra[0], t, y, diverged, groups)
+        return (cases, *extra[1:]), (cases.frozen, args[1])
+
+    k0 = jnp.zeros((G,), jnp.int32)
+    buf0 = _to_last(
+        jax.vmap(lambda p, y: initial_buffer(eqx.combine(p, fixed)[0], y), axis_size=n)(
+            part, _to_first(state0)
+        )
+    )
+    state0, buf0, held0, dctrl0 = sample_instants(k0, state0, buf0)
+    extra0 = (cases0, k0, buf0, dctrl0, state0.plant[CHANNEL_INDEX], jnp.full((G,), t0))
     out = lean_loop(
-        _lean_field(part, fixed, n),
+        _lean_group_field(fixed),
+        part_g,
         solver,
-        stepsize,
+        controllers,
         t0,
         t1,
         state0,
-        (frozen0, held0),
+        (cases0.frozen, held0),
+        groups=groups,
         max_steps=max_steps,
         extra=extra0,
         after_step=after_step,
+        before_step=before_step,
         boundary=lambda extra: interval_end(extra[1]),
     )
-    cases = out.extra[0]
-    status = status_from(out.result, cases.frozen)
-    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
-    return _metrics(
-        out.y, cases.t_final(out.t), status, out.num_steps, out.num_rejected_steps, peaks
-    )
+    return _lean_result(out, out.extra[0], groups, dtype, n_save)
