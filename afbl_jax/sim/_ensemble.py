@@ -426,10 +426,9 @@ class _Cases(eqx.Module):
 
 
 def _freeze(cases: _Cases, t, y, diverged, groups: Groups) -> _Cases:
-    """Before a step from the groups' accepted times t (G,) and state y: a case past the
-    limits there is frozen from now on and ends at t, the end of the step where it crossed
-    them (as `simulate`'s divergence event stops a run at the end of the step where it
-    fires)."""
+    """At the groups' accepted times t (G,) and state y: a case past the limits there is
+    frozen from now on and ends at t, the end of the step where it crossed them (as
+    `simulate`'s divergence event stops a run at the end of the step where it fires)."""
     new = ~cases.frozen & diverged((t,), y)
     t_frozen = jnp.where(new, groups.per_case(t), cases.t_frozen)
     return _Cases(cases.frozen | new, t_frozen, cases.peaks)
@@ -493,7 +492,7 @@ def _lean_continuous(
         lambda t, lp, inp, state: lp.diverged_at(t, state, inp), part_g, fixed, groups
     )
 
-    def before_step(cases, t, y, args):
+    def on_state(cases, t, y, args):
         cases = _freeze(cases, t, y, diverged, groups)
         return cases, (cases.frozen, None)
 
@@ -524,7 +523,7 @@ def _lean_continuous(
         max_steps=max_steps,
         extra=cases0,
         after_step=after_step,
-        before_step=before_step,
+        on_state=on_state,
     )
     return _lean_result(out, out.extra, groups, dtype, n_save)
 
@@ -624,7 +623,7 @@ def _lean_digital(
         stop = at_boundary & ~more & (e_end < t1)
         return extra, y, (cases.frozen, held), at_boundary, stop
 
-    def before_step(extra, t, y, args):
+    def on_state(extra, t, y, args):
         cases = _freeze(extra[0], t, y, diverged, groups)
         return (cases, *extra[1:]), (cases.frozen, args[1])
 
@@ -649,7 +648,7 @@ def _lean_digital(
         max_steps=max_steps,
         extra=extra0,
         after_step=after_step,
-        before_step=before_step,
+        on_state=on_state,
         boundary=lambda extra: interval_end(extra[1]),
     )
     return _lean_result(out, out.extra[0], groups, dtype, n_save)

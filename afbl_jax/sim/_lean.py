@@ -28,11 +28,12 @@ What a caller needs from the trajectory it computes inside the loop from every s
   update ``extra``; a hook may change the state and ``args`` (digital control: a sample
   instant's discrete update) and say so with ``jumped`` (G,) (the solver then re-evaluates
   its first stage, as after a jump time), or end a group's solve (``stop`` (G,)).
-- ``before_step(extra, t, y, args) -> (extra, args)`` runs before every step on the groups'
-  current (accepted) times (G,) and state, and once more on the final state: per-case
-  decisions the vector field reads from ``args`` (e.g. freezing the cases that crossed a
-  limit). Here rather than in ``after_step``, it lies on the solver's own path: computed off
-  that path, XLA ran it concurrently on a second thread and the hand-over cost ~30 %.
+- ``on_state(extra, t, y, args) -> (extra, args)`` runs on the groups' accepted times (G,)
+  and state: once on the initial state, then after every step on the new state (that of the
+  next step): per-case decisions the vector field reads from ``args`` (e.g. freezing the
+  cases that crossed a limit). It runs last in the step, on the selected state, so that XLA
+  keeps the step one sequence of work (computed beside the solver's stages, it ran on a
+  second thread and the hand-overs cost ~25 % more CPU time).
 - ``boundary(extra) -> t`` (G,): a group's steps never cross its t (the next sample instant;
   +inf: none). ``at_boundary`` tells the hook which groups' accepted steps ended there, and
   the step budget ``max_steps`` counts each group's steps since its last boundary (with no
@@ -167,7 +168,7 @@ def lean_loop(
     max_steps: int,
     extra=None,
     after_step: Callable | None = None,
-    before_step: Callable | None = None,
+    on_state: Callable | None = None,
     boundary: Callable | None = None,
 ) -> LoopOutcome:
     """Integrate the ensemble from t0 to t1 (module docstring). ``controllers``: one diffrax
@@ -176,7 +177,7 @@ def lean_loop(
     ``init`` (diffrax's initial-step heuristic for a PID controller). ``after_step`` None: no
     hook; its ``y1`` output None: the state is unchanged."""
     after_step = _no_hook if after_step is None else after_step
-    before_step = _no_check if before_step is None else before_step
+    on_state = _no_check if on_state is None else on_state
     G = groups.count
     t0 = jnp.asarray(t0)
     t1 = jnp.asarray(t1, t0.dtype)
@@ -212,6 +213,7 @@ def lean_loop(
     t1_floor = _prevbefore(t1, 100)
     zeros = jnp.zeros((G,), jnp.int32)
     false = jnp.zeros((G,), bool)
+    extra, args = on_state(extra, jnp.full((G,), t0), y0, args)
     carry = _Carry(
         jnp.full((G,), t0),
         t_next,
@@ -237,7 +239,7 @@ def lean_loop(
 
     def body(c: _Carry) -> _Carry:
         live = running(c)
-        extra, args = before_step(c.extra, c.t, c.y, c.args)
+        extra, args = c.extra, c.args
         t_case, t_next_case = groups.per_case(c.t), groups.per_case(c.t_next)
         y1, y_error, dense, solver_state, solver_result = solver.step(
             term, t_case, t_next_case, c.y, args, c.solver_state, jnp.any(c.made_jump)
@@ -279,11 +281,13 @@ def lean_loop(
         result = _where(keep, _results(solver_result, G), ok)
         result = _where(result == diffrax.RESULTS.successful, controller_result, result)
         result = _where(live, result, c.result)
+        y_new = pick(y1, c.y)
+        extra, args_new = on_state(extra, t_new, y_new, pick(args_out, args))
         return _Carry(
             t_new,
             t_next,
-            pick(y1, c.y),
-            pick(args_out, args),
+            y_new,
+            args_new,
             pick(solver_state, c.solver_state),
             # a finished group's controller state is not used again: not selected (a select
             # here copied its jump times every step and cost ~30 %)
@@ -298,11 +302,10 @@ def lean_loop(
         )
 
     c = jax.lax.while_loop(lambda c: jnp.any(running(c)), body, carry)
-    extra, args = before_step(c.extra, c.t, c.y, c.args)
     # stopped before t1 with no failure: a step budget (or the hook's) ran out
     result = _where(
         (c.result == diffrax.RESULTS.successful) & (c.t < t1),
         _results(diffrax.RESULTS.max_steps_reached, G),
         c.result,
     )
-    return LoopOutcome(c.t, c.y, args, extra, result, c.num_steps, c.num_rejected)
+    return LoopOutcome(c.t, c.y, c.args, c.extra, result, c.num_steps, c.num_rejected)
