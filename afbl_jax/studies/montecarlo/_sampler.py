@@ -285,9 +285,12 @@ def case_keys(seed: int, index) -> Array:
     """The PRNG key of every case index (shape (n, 2)): ``fold_in(PRNGKey(seed), i)`` for
     i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
     i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
-    index = np.asarray(index, dtype=np.int64)
-    if index.size and (index.min() < 0 or index.max() > MAX_CASE_INDEX):
-        raise ValueError(f"case indices must lie in [0, 2^63 - 1], got {index.min()}..")
+    try:
+        index = np.asarray(index, dtype=np.int64)  # int64: at most MAX_CASE_INDEX
+    except OverflowError:
+        index = np.array([-1])
+    if index.size and index.min() < 0:
+        raise ValueError("case indices must be integers in [0, 2^63 - 1].")
     lo = jnp.asarray((index & 0xFFFFFFFF).astype(np.uint32))
     hi = jnp.asarray((index >> 32).astype(np.uint32))
     return _keys(jax.random.PRNGKey(check_seed(seed)), lo, hi)
