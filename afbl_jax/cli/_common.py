@@ -30,7 +30,14 @@ class Parser(argparse.ArgumentParser):
 
 
 class Formatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Help text with each flag's default."""
+    """Help text with each flag's default ("(default: ...)"), unless the help text already says
+    it or there is none to show (None, an off switch, an empty list)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text or action.default in (None, False, []):
+            return text
+        return super()._get_help_string(action)
 
 
 def add_out(p: argparse.ArgumentParser, help: str = "output folder (created)") -> None:

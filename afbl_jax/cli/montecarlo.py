@@ -55,8 +55,9 @@ def register(sub) -> None:
     add_progress(p)
     hosts = p.add_argument_group(
         "several hosts",
-        "run the same command on every host (each with its own --out, or one "
-        "shared folder), then join the folders with `afbl merge`",
+        "run the same command on every host, each with its own --out, then join the "
+        "folders with `afbl merge` (hosts sharing a file system with working file locks can "
+        "instead run the same command without these flags into one --out)",
     )
     hosts.add_argument(
         "--host-index",

@@ -343,7 +343,10 @@ def test_every_flag_shows_its_default_in_help(capsys):
     for name, p in sub.choices.items():
         for action in p._actions:
             if action.option_strings and action.dest != "help":
-                assert action.help, f"afbl {name} {action.option_strings[0]} has no help text"
+                flag = f"afbl {name} {action.option_strings[0]}"
+                assert action.help, f"{flag} has no help text"
+                if action.default is None and not action.required:  # what "unset" means
+                    assert "default" in action.help, f"{flag} does not say its default"
     assert main(["tune", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     for flag, default in (("--steps", "100"), ("--lr", "0.05"), ("--max-steps", "8192")):
