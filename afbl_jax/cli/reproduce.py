@@ -9,6 +9,7 @@ from ._common import (
     UsageError,
     add_controllers,
     add_out,
+    check_out,
     check_tolerances,
     controllers_from_args,
 )
@@ -26,7 +27,12 @@ def register(sub) -> None:
     )
     add_out(p)
     add_controllers(p, "fbl,afbl,afbl_paper")
-    p.add_argument("--solver", default="tsit5", choices=["tsit5", "dopri5", "dopri8"])
+    p.add_argument(
+        "--solver",
+        default="tsit5",
+        choices=["tsit5", "dopri5", "dopri8"],
+        help="diffrax Runge-Kutta solver",
+    )
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance")
     p.add_argument("--atol", type=float, default=1e-10, help="absolute tolerance")
     p.add_argument("--n-save", type=int, default=2001, help="saved samples per run (>= 2)")
@@ -46,6 +52,7 @@ def run(args) -> int:
     if args.n_save < 2:
         raise UsageError(f"--n-save must be >= 2, got {args.n_save}.")
     check_tolerances(args)
+    check_out(args.out)
     controllers = controllers_from_args(args)
     settings = unmodeled_from_args(args)
     print(

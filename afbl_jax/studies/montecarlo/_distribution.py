@@ -126,12 +126,20 @@ _INT_KEYS = {("turbulence", "n_frequencies")}
 
 
 def _is_number(x) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+    """A finite int or float (not a bool; an int too large for a float is not finite)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 def _validate(spec: dict, source: str) -> None:
     if not isinstance(spec, dict):
-        raise ValueError(f"{source}: expected a table/object of sections, got {type(spec)}.")
+        raise ValueError(
+            f"{source}: expected a table/object of sections, got {type(spec).__name__}."
+        )
     for section, body in spec.items():
         if section not in DEFAULT_DISTRIBUTION:
             raise ValueError(
@@ -283,11 +291,22 @@ def load_distribution(path: str | Path) -> Distribution:
         text = path.read_bytes()
     except FileNotFoundError:
         raise ValueError(f"distribution file {path} does not exist.") from None
+    except IsADirectoryError:
+        raise ValueError(
+            f"distribution file {path} is a directory; give a .toml or .json file."
+        ) from None
+    except OSError as err:
+        raise ValueError(f"distribution file {path} cannot be read: {err.strerror}.") from None
     try:
         if path.suffix.lower() == ".toml":
             data = tomllib.loads(text.decode())
         else:
             data = json.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"distribution file {path} could not be parsed: {err}.") from None
+    except ValueError as err:  # TOML/JSON syntax, encoding, integers too long to convert
+        kind = "TOML" if path.suffix.lower() == ".toml" else "JSON (or name it .toml)"
+        raise ValueError(
+            f"distribution file {path} could not be parsed as {kind}: {err}."
+        ) from None
+    except RecursionError:
+        raise ValueError(f"distribution file {path} is nested too deeply to parse.") from None
     return Distribution.from_dict(data, source=str(path))

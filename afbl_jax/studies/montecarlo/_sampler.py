@@ -1,7 +1,9 @@
 """Sampling Monte-Carlo cases from a `Distribution`.
 
-Case i is drawn from its own key ``fold_in(PRNGKey(seed), i)``, so a case never depends on how
-many cases are drawn with it or on how they are chunked. One exception, so that the cases of an
+Case i is drawn from its own key (`case_keys`: ``fold_in(PRNGKey(seed), i)`` for i < 2^32, and
+``fold_in(fold_in(PRNGKey(seed), i mod 2^32), i // 2^32)`` above, so every index up to
+`MAX_CASE_INDEX` has its own key), so a case never depends on how many cases are drawn with it
+or on how they are chunked. One exception, so that the cases of an
 ensemble group can share their control sample instants: with ``[unmodeled]`` digital control,
 the control rate of case i is the one drawn for case ``GROUP_SIZE * (i // GROUP_SIZE)`` (the
 first case of its group of `GROUP_SIZE` consecutive indices). Every case still gets a rate from
@@ -19,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._typing import Array
+from ..._validation import check_seed
 from ...model import QuadrotorParams, UnmodeledDynamics
 from ...scenario import (
     TURBULENCE_INTENSITIES,
@@ -88,6 +91,8 @@ UNMODELED_COLUMNS: tuple[str, ...] = (
 the case's `afbl_jax.UnmodeledDynamics` numbers (``motor_tau`` [s], ``control_rate`` [Hz],
 0 = continuous controller, ``delay_samples`` [samples], noise standard deviations [rad],
 [rad/s], [m], [m/s])."""
+MAX_CASE_INDEX = 2**63 - 1
+"""Largest case index (int64 case column); `case_keys` gives every index its own key."""
 _UNMODELED_STREAM = 0x554E4D44  # fold_in constant of the per-case unmodeled key ("UNMD")
 
 
@@ -129,7 +134,7 @@ class CaseBatch(eqx.Module):
         """The cases at positions ``indices`` (an int array or a slice) of this batch."""
         if isinstance(indices, slice):
             indices = np.arange(self.n_cases)[indices]
-        idx = jnp.asarray(indices)
+        idx = np.asarray(indices)
         pick = lambda x: x[idx]  # noqa: E731
         model = jax.tree.map(pick, self.model) if self.model_batched else self.model
         unmodeled = None if self.unmodeled is None else jax.tree.map(pick, self.unmodeled)
@@ -276,24 +281,47 @@ def nominal_model(distribution: Distribution) -> QuadrotorParams:
     return QuadrotorParams()
 
 
-def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> CaseBatch:
-    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed``.
+def case_keys(seed: int, index) -> Array:
+    """The PRNG key of every case index (shape (n, 2)): ``fold_in(PRNGKey(seed), i)`` for
+    i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
+    i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
+    try:
+        index = np.asarray(index, dtype=np.int64)  # int64: at most MAX_CASE_INDEX
+    except OverflowError:
+        index = np.array([-1])
+    if index.size and index.min() < 0:
+        raise ValueError("case indices must be integers in [0, 2^63 - 1].")
+    lo = jnp.asarray((index & 0xFFFFFFFF).astype(np.uint32))
+    hi = jnp.asarray((index >> 32).astype(np.uint32))
+    return _keys(jax.random.PRNGKey(check_seed(seed)), lo, hi)
 
-    Case i uses the key ``fold_in(PRNGKey(seed), i)`` only, so it is the same in every batch.
+
+@jax.jit
+def _keys(base, lo, hi):
+    low = jax.vmap(lambda i: jax.random.fold_in(base, i))(lo)
+    high = jax.vmap(jax.random.fold_in)(low, hi)
+    return jnp.where((hi == 0)[:, None], low, high)
+
+
+def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> CaseBatch:
+    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed`` (in [0,
+    2^63 - 1]; indices up to `MAX_CASE_INDEX`).
+
+    Case i uses its own key (`case_keys`) only, so it is the same in every batch.
     """
     if isinstance(n_cases, bool) or int(n_cases) < 1:
         raise ValueError(f"n_cases must be an integer >= 1, got {n_cases!r}.")
-    if int(start) < 0:
-        raise ValueError(f"start must be >= 0, got {start!r}.")
-    index = jnp.arange(int(start), int(start) + int(n_cases))
-    base = jax.random.PRNGKey(int(seed))
-    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+    if int(start) < 0 or int(start) + int(n_cases) - 1 > MAX_CASE_INDEX:
+        raise ValueError(
+            f"cases start .. start + n_cases - 1 must lie in [0, 2^63 - 1], got start {start!r}, "
+            f"n_cases {n_cases!r}."
+        )
+    index = np.arange(int(start), int(start) + int(n_cases), dtype=np.int64)
+    keys = case_keys(seed, index)
     scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
     unmodeled = None
     if distribution.spec["unmodeled"]["enabled"]:
-        group_keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(
-            (index // GROUP_SIZE) * GROUP_SIZE
-        )
+        group_keys = case_keys(seed, (index // GROUP_SIZE) * GROUP_SIZE)
         unmodeled, extra = _sample_unmodeled(distribution, keys, group_keys)
         inputs = {**inputs, **extra}
     return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index, unmodeled)
