@@ -411,7 +411,9 @@ def test_report_numbers_recomputed_from_file(study):
     st = df.pivot(index="case", columns="controller", values="status")
     wins = ((st["afbl"] == "ok") & ((st["fbl"] != "ok") | (wide["afbl"] < wide["fbl"]))).sum()
     assert saved["paired"]["afbl_over_fbl"]["ise_altitude"]["wins"] == wins
-    lo, hi = mc.wilson_interval(int(wins), N)
+    counted = int(((st["afbl"] == "ok") | (st["fbl"] == "ok")).sum())  # cases one finished
+    assert saved["paired"]["afbl_over_fbl"]["ise_altitude"]["n"] == counted
+    lo, hi = mc.wilson_interval(int(wins), counted)
     assert saved["paired"]["afbl_over_fbl"]["ise_altitude"]["ci95"] == pytest.approx([lo, hi])
     assert saved == json.loads(json.dumps(summary))
     md = (out / "report.md").read_text()

@@ -15,14 +15,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
+from rotorpy.vehicles import multirotor
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 import afbl_jax as A
 from afbl_jax.model import RotorDrag, full_plant_derivative, omega_d, rotor_drag_wrench
-
-multirotor = pytest.importorskip("rotorpy.vehicles.multirotor")
 
 TAU_M = 1e-3  # RotorPy motor time constant [s]
 T_END = 2.0  # [s]

@@ -35,6 +35,15 @@ SPEC = mc.DEFAULT_DISTRIBUTION["turbulence"]
 BAND = (SPEC["n_frequencies"], SPEC["omega_min"], SPEC["omega_max"])
 
 
+def _psd_np(omega, sigma, scale, airspeed, j):
+    """MIL-HDBK-1797 one-sided temporal Dryden PSD of axis j (independent numpy transcription)."""
+    x = scale[j] * omega / airspeed
+    base = sigma[j] ** 2 * 2.0 * scale[j] / (np.pi * airspeed)
+    if j == 0:
+        return base / (1.0 + x**2)
+    return base * (1.0 + 12.0 * x**2) / (1.0 + 4.0 * x**2) ** 2
+
+
 def _turbulence(amp, omega, phase):
     return Wind(jnp.zeros(0), jnp.ones((0, 3)), jnp.zeros((0, 3)), amp, omega, phase)
 
@@ -60,15 +69,16 @@ def test_mean_wind_log_profile():
 def test_dryden_closed_forms_agree_with_quadrature():
     sigma, scale = dryden_low_altitude("moderate", 10.0)
     airspeed = 17.0
+    grid = np.geomspace(1e-3, 1e3, 7)
+    np.testing.assert_allclose(
+        np.asarray(dryden_psd(grid, sigma, scale, airspeed)),
+        [_psd_np(grid, sigma, scale, airspeed, j) for j in range(3)],
+        rtol=1e-12,
+    )
     for omega in (0.03, 0.7, 12.0, 250.0):
         cum = np.asarray(dryden_cumulative(np.array([omega]), sigma, scale, airspeed))[:, 0]
         for j in range(3):
-            ref = quad(
-                lambda o, j=j: float(dryden_psd(np.array([o]), sigma, scale, airspeed)[j, 0]),
-                0.0,
-                omega,
-                limit=400,
-            )[0]
+            ref = quad(_psd_np, 0.0, omega, args=(sigma, scale, airspeed, j), limit=400)[0]
             np.testing.assert_allclose(cum[j], ref, rtol=1e-8)
     total = np.asarray(dryden_cumulative(np.array([1e12]), sigma, scale, airspeed))[:, 0]
     np.testing.assert_allclose(total, sigma**2, rtol=1e-9)
@@ -76,11 +86,8 @@ def test_dryden_closed_forms_agree_with_quadrature():
     for r in (0.5, 4.0, 30.0):
         rho = np.asarray(dryden_correlation(r, scale))
         for j in range(3):
-
-            def spatial(big, j=j):
-                return float(dryden_psd(np.array([big]), sigma, scale, 1.0)[j, 0]) / sigma[j] ** 2
-
-            ref = quad(spatial, 0.0, np.inf, weight="cos", wvar=r)[0]
+            ref = quad(_psd_np, 0.0, np.inf, args=(sigma, scale, 1.0, j), weight="cos", wvar=r)[0]
+            ref /= sigma[j] ** 2
             np.testing.assert_allclose(rho[j], ref, rtol=1e-7, atol=1e-10)
 
 
@@ -149,7 +156,7 @@ def test_gust_magnitude_is_the_rms_velocity_change_over_the_gust_length():
     omega = np.sqrt(edges[:-1] * edges[1:])
     amp = np.asarray(dryden_band_amplitudes(edges, sigma, scale, airspeed))
     rng = np.random.default_rng(3)
-    t = jnp.asarray(np.arange(0.0, 2000.0, 0.02))
+    t = jnp.asarray(np.arange(0.0, 1200.0, 0.02))
     for d in (5.0, 30.0):
         acc = np.zeros(3)
         for _ in range(6):
