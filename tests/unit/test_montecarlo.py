@@ -484,6 +484,18 @@ SHARD_SCRIPT = textwrap.dedent("""
             np.testing.assert_allclose(a[k], b[k], rtol=1e-4 if strategy.endswith("f32")
                                        else 1e-10, atol=1e-15, err_msg=strategy + k)
         assert list(a["status"]) == list(b["status"])
+    # realistic vehicle: full plant, motor lag, digital control with delay and noise
+    u = mc.Distribution.from_dict({"time": {"t1": 3.0}, "pulses": {"start": [0.5, 2.0]},
+                                   "gust": {"start": [0.5, 2.0]},
+                                   "unmodeled": {"enabled": True, "plant": "full",
+                                                 "motor_tau": [0.02, 0.04],
+                                                 "control_rate": [200.0, 300.0],
+                                                 "delay_samples": [0, 1],
+                                                 "noise_angle": [0.0, 1e-3]}})
+    a = table_columns(mc.run_montecarlo(c, u, 8, 2, chunk_size=8, shard=True, progress=False))
+    b = table_columns(mc.run_montecarlo(c, u, 8, 2, chunk_size=8, shard=False, progress=False))
+    np.testing.assert_allclose(a["ise_attitude"], b["ise_attitude"], rtol=1e-4)
+    assert list(a["status"]) == list(b["status"])
     print("SHARDED_OK")
 """)
 

@@ -31,6 +31,7 @@ from ...plotting.montecarlo import (
     figure_worst,
 )
 from ...scenario import TURBULENCE_INTENSITIES
+from ...sim import STATUS_LABELS
 
 ISE_METRICS = ("ise_attitude", "ise_altitude")
 PERCENTILES = (50, 90, 99)
@@ -65,9 +66,7 @@ def summarize(cols: dict) -> dict:
         n, fails = len(status), int(np.sum(~ok))
         entry = {
             "n": n,
-            "status_counts": {
-                s: int(np.sum(status == s)) for s in ("ok", "diverged", "solver_failed")
-            },
+            "status_counts": {s: int(np.sum(status == s)) for s in STATUS_LABELS},
             "failures": fails,
             "failure_rate": fails / n,
             "failure_rate_ci95": list(wilson_interval(fails, n)),
