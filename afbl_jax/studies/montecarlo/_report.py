@@ -265,6 +265,7 @@ def replay_worst(
                 n_save=801,
                 max_steps=settings.max_steps,
                 unmodeled=batch.unmodeled_case(0),
+                aerodynamics=batch.aerodynamics,
             )
             for name, ctrl in controllers.items()
         }

@@ -141,6 +141,7 @@ def _batch_strategy(name: str) -> Strategy:
             chunk.vehicle,
             chunk.model,
             unmodeled=chunk.unmodeled,
+            aerodynamics=chunk.aerodynamics,
             solver=settings.solver,
             rtol=settings.rtol,
             atol=settings.atol,
