@@ -120,7 +120,11 @@ def test_gains_file_runs_at_full_precision(tmp_path):
     assert recorded == {**data, "controller": "afbl"}
     assert recorded["k"][3] == 80.123456789012345
     ctrl = A.AFBL(gamma=data["gamma"], k=data["k"], lam=data["lambda"])
-    direct = A.simulate(ctrl, A.paper_scenario("uncertain", "step"), rtol=1e-6, atol=1e-8)
+    # the reproduction flies the paper's vehicle with eq. 14's gyroscopic sign (its default)
+    vehicle = A.QuadrotorParams(gyro_sign=A.EQ14_GYRO_SIGN)
+    direct = A.simulate(
+        ctrl, A.paper_scenario("uncertain", "step"), vehicle, rtol=1e-6, atol=1e-8
+    )
     np.testing.assert_allclose(
         doc["uncertain_step"]["afbl"]["ise_attitude"], float(direct.ise_attitude), rtol=1e-9
     )
