@@ -22,11 +22,14 @@ from .metrics import BatchMetrics as BatchMetrics
 from .metrics import metrics_from_result as metrics_from_result
 from .metrics import peaks_over_samples as peaks_over_samples
 from .metrics import sample_peaks as sample_peaks
+from .model import AERODYNAMIC_MODELS as AERODYNAMIC_MODELS
 from .model import AFBL as AFBL
 from .model import CHANNELS as CHANNELS
 from .model import CONTROLLERS as CONTROLLERS
+from .model import EQ14_GYRO_SIGN as EQ14_GYRO_SIGN
 from .model import FBLPID as FBLPID
 from .model import FULL_STATE_LAYOUT as FULL_STATE_LAYOUT
+from .model import PHYSICAL_GYRO_SIGN as PHYSICAL_GYRO_SIGN
 from .model import PLANT_MODELS as PLANT_MODELS
 from .model import STATE_LAYOUT as STATE_LAYOUT
 from .model import AbstractActuators as AbstractActuators
@@ -44,6 +47,7 @@ from .model import PaperPlant as PaperPlant
 from .model import QuadrotorParams as QuadrotorParams
 from .model import ReferenceSample as ReferenceSample
 from .model import RigidBodyPlant as RigidBodyPlant
+from .model import RotorDrag as RotorDrag
 from .model import UnmodeledDynamics as UnmodeledDynamics
 from .model import actuate as actuate
 from .model import allocation_matrix as allocation_matrix
@@ -53,6 +57,7 @@ from .model import feedback_linearize as feedback_linearize
 from .model import full_plant_derivative as full_plant_derivative
 from .model import hover_input as hover_input
 from .model import inputs_from_rotor_speeds_sq as inputs_from_rotor_speeds_sq
+from .model import make_aerodynamics as make_aerodynamics
 from .model import make_controller as make_controller
 from .model import measure as measure
 from .model import measurement_noise as measurement_noise

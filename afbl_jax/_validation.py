@@ -5,6 +5,20 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+MAX_SEED = 2**63 - 1
+"""Largest seed: `jax.random.PRNGKey` takes a signed 64-bit integer (seeds here are >= 0)."""
+
+
+def check_seed(seed, name: str = "seed") -> int:
+    """``seed`` as an int in [0, `MAX_SEED`]; ValueError (saying the range) otherwise."""
+    if (
+        isinstance(seed, bool)
+        or not isinstance(seed, int | np.integer)
+        or not (0 <= int(seed) <= MAX_SEED)
+    ):
+        raise ValueError(f"{name} must be an integer in [0, 2^63 - 1], got {seed!r}.")
+    return int(seed)
+
 
 def concrete(x) -> np.ndarray | None:
     """`x` as a NumPy array, or ``None`` when it is a JAX tracer (inside jit/vmap/grad)."""

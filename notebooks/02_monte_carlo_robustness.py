@@ -18,9 +18,10 @@
 #
 # Four canonical runs say little about robustness. Here every case draws a payload, model
 # errors (inertia, thrust and rotor-drag coefficients, a thrust-to-weight limit of 2.5), the
-# paper's disturbance pulses, a 1-cosine gust and Dryden turbulence acting through a
-# linear-drag aerodynamic model, an initial attitude offset and a reference profile, and both
-# controllers fly the *same* case (paired comparison).
+# paper's disturbance pulses, a steady mean wind, a 1-cosine gust and Dryden turbulence
+# (MIL-F-8785C / MIL-HDBK-1797 low altitude) acting through the rotor-drag aerodynamic model,
+# an initial attitude offset and a reference profile, and both controllers fly the *same* case
+# (paired comparison).
 #
 # The notebook runs a small batch (so the tests can execute it); the full study is
 # `afbl montecarlo --cases 4096 --controllers fbl,afbl --seed 0 --out results/mc`.

@@ -11,6 +11,8 @@ JAX/diffrax implementation. All quantities are in SI units:
 Channel order for references, errors, virtual inputs and controller states is
 ``(phi, theta, psi, z)``.
 
+The rotor gyroscopic term has eq. (14)'s sign (``afbl_jax.EQ14_GYRO_SIGN``).
+
 Full ODE state (18 entries)::
 
     y[0:12]  plant state [x, y, z, phi, theta, psi, xd, yd, zd, phid, thetad, psid]

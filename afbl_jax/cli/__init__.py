@@ -3,24 +3,26 @@
 `main` splits the CPU into one XLA device per core (before JAX starts), switches JAX's 64-bit
 mode on once (before any gains or distribution file is read, so numbers keep full precision),
 parses the arguments and runs the subcommand. Every user error takes one path: a single line
-``afbl <command>: error: <what was wrong and what is allowed>`` on stderr, exit status 2.
+``afbl <command>: error: <what was wrong and what is allowed>`` on stderr, exit status 2, no
+traceback. That includes argparse's own errors (unknown flag, a value of the wrong type, a
+missing --out: the line ends with "(see afbl <command> --help)" instead of argparse's usage
+block), validation errors of files and settings (ValueError), and operating-system errors
+(OSError: an unreadable file, a folder that cannot be written). Ctrl-C prints one line
+and exits with status 130 (a Monte-Carlo run resumes when the same command is run again).
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 
 from . import bench, montecarlo, reproduce, tune, unmodeled
-from ._common import UsageError
+from ._common import Parser, one_line
 
 SUBCOMMANDS = (reproduce, montecarlo, unmodeled, tune, bench)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX."
-    )
+def build_parser() -> Parser:
+    parser = Parser(prog="afbl", description="Quadrotor FBL+PID / adaptive FBL studies in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     for module in SUBCOMMANDS:
         module.register(sub)
@@ -46,15 +48,32 @@ def main(argv: list[str] | None = None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args, extra = parser.parse_known_args(argv)
+    except SystemExit as exc:  # --help, or an argparse error already printed as one line
+        return exc.code if isinstance(exc.code, int) else 2
+    if extra:
+        _error(
+            args.command,
+            f"unrecognized arguments: {' '.join(extra)} (see afbl {args.command} --help)",
+        )
+        return 2
     try:
         return int(args.func(args) or 0)
-    except UsageError as err:
-        print(f"afbl {args.command}: error: {err}", file=sys.stderr)
+    except ValueError as err:  # UsageError, and validation of files and settings in the library
+        _error(args.command, str(err))
         return 2
-    except ValueError as err:  # validation of files and settings in the library
-        print(f"afbl {args.command}: error: {err}", file=sys.stderr)
+    except OSError as err:  # a file that cannot be read or written
+        what = f"{err.filename}: {err.strerror}" if err.strerror and err.filename else str(err)
+        _error(args.command, f"{what}.")
         return 2
+    except KeyboardInterrupt:
+        print(f"afbl {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _error(command: str, message: str) -> None:
+    print(f"afbl {command}: error: {one_line(message)}", file=sys.stderr)
 
 
 if __name__ == "__main__":

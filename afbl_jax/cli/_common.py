@@ -1,22 +1,86 @@
-"""What every subcommand shares: the usage-error type, shared flags (defined once) and the
-controllers-with-gains-files logic."""
+"""What every subcommand shares: the usage-error type, the parser (one-line errors), shared
+flags (defined once), the output-folder check and the controllers-with-gains-files logic."""
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
+
+from .._validation import MAX_SEED
 
 
 class UsageError(ValueError):
     """A user error: printed as one line ``afbl <command>: error: ...``, exit status 2."""
 
 
+def one_line(text: str, limit: int = 2000) -> str:
+    """``text`` on one line (line breaks shown as spaces), at most ``limit`` characters."""
+    flat = " ".join(str(text).split("\n")).replace("\r", " ")
+    return flat if len(flat) <= limit else flat[: limit - 5] + " ..."
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with every error on ONE line, ``<prog>: error: <message> (see <prog> --help)``,
+    exit status 2, like the errors the subcommands raise (argparse's own would print the usage
+    block first)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
 class Formatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Help text with each flag's default."""
+    """Help text with each flag's default ("(default: ...)"), unless the help text already says
+    it or there is none to show (None, an off switch, an empty list)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if "default" in text or action.default in (None, False, []):
+            return text
+        return super()._get_help_string(action)
 
 
 def add_out(p: argparse.ArgumentParser, help: str = "output folder (created)") -> None:
     p.add_argument("--out", required=True, type=Path, help=help)
+
+
+def check_out(path: Path) -> None:
+    """Refuse an --out that cannot become a writable folder, creating nothing: an existing
+    file, a path below a file, a read-only file system or a folder without write permission."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise UsageError(
+                f"--out {path} is an existing file; give a folder (created if missing)."
+            )
+        where = path
+    else:
+        where = path.absolute().parent
+        while not where.exists():
+            where = where.parent
+        if not where.is_dir():
+            raise UsageError(
+                f"--out {path} lies below {where}, which is a file, not a folder; give a "
+                "folder path."
+            )
+    read_only = hasattr(os, "statvfs") and bool(os.statvfs(where).f_flag & os.ST_RDONLY)
+    if read_only or not os.access(where, os.W_OK | os.X_OK):
+        why = "is on a read-only file system" if read_only else "is not writable for this user"
+        what = "" if where == path else f" cannot be created: {where}"
+        raise UsageError(f"--out {path}{what} {why}; give a writable folder.")
+
+
+def seed(text: str) -> int:
+    """argparse type: a seed, an integer in [0, 2^63 - 1]."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer in [0, 2^63 - 1] = [0, {MAX_SEED}], got {text!r}"
+        )
+    return value
 
 
 def add_controllers(p: argparse.ArgumentParser, default: str) -> None:
@@ -55,8 +119,8 @@ def floats(text: str) -> list[float]:
 def check_tolerances(args) -> None:
     for name in ("rtol", "atol"):
         value = getattr(args, name)
-        if value is not None and not value > 0:
-            raise UsageError(f"--{name} must be a number > 0, got {value}.")
+        if value is not None and not 0 < value < float("inf"):
+            raise UsageError(f"--{name} must be a finite number > 0, got {value}.")
 
 
 def controllers_from_args(args) -> dict:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._common import Formatter, UsageError, add_out
+from ._common import Formatter, UsageError, add_out, check_out, seed
 
 
 def register(sub) -> None:
@@ -34,7 +34,7 @@ def register(sub) -> None:
         help="cases with a tight x64 reference (accuracy is measured on the first "
         "min(N, ref-cases) cases of each row)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="seed of the cases, in [0, 2^63 - 1]")
     p.set_defaults(func=run)
 
 
@@ -53,6 +53,7 @@ def run(args) -> int:
         raise UsageError(f"--sizes must be positive integers, got {args.sizes!r}.")
     if min(args.scipy_cases, args.loop_cases, args.ref_cases) <= 0:
         raise UsageError("--scipy-cases, --loop-cases, --ref-cases must be > 0.")
+    check_out(args.out)
     rows = run_benchmark(
         BenchConfig(
             args.out,

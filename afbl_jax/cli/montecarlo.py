@@ -12,8 +12,10 @@ from ._common import (
     add_out,
     add_progress,
     add_tolerances,
+    check_out,
     check_tolerances,
     controllers_from_args,
+    seed,
 )
 
 
@@ -24,11 +26,12 @@ def register(sub) -> None:
         help="Monte-Carlo robustness study: payload, model error, wind; paired controllers",
         description="Sample --cases cases from the distribution, simulate each with every "
         "controller (paired), write OUT/results.parquet, meta.json, summary.json, report.md, "
-        "report.html and print a summary. Re-running the same command resumes.",
+        "report.html and print a summary. Re-running the same command resumes; several runs "
+        "of the same command into one OUT share the chunks between them.",
     )
     p.add_argument("--cases", type=int, default=4096, help="number of cases")
     add_controllers(p, "fbl,afbl")
-    p.add_argument("--seed", type=int, default=0, help="seed of the cases")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the cases, in [0, 2^63 - 1]")
     add_out(p, "output folder (created; re-running the same command there resumes)")
     p.add_argument(
         "--distribution",
@@ -52,13 +55,19 @@ def register(sub) -> None:
     add_progress(p)
     hosts = p.add_argument_group(
         "several hosts",
-        "run the same command on every host (each with its own --out, or one "
-        "shared folder), then join the folders with `afbl merge`",
+        "run the same command on every host, each with its own --out, then join the "
+        "folders with `afbl merge` (hosts sharing a file system with working file locks can "
+        "instead run the same command without these flags into one --out)",
     )
     hosts.add_argument(
-        "--host-index", type=int, default=None, help="this host's index i (runs chunks i, i+P, ...)"
+        "--host-index",
+        type=int,
+        default=None,
+        help="this host's index i (runs chunks i, i+P, ...); default: one host",
     )
-    hosts.add_argument("--host-count", type=int, default=None, help="number of hosts P")
+    hosts.add_argument(
+        "--host-count", type=int, default=None, help="number of hosts P; default: one host"
+    )
     hosts.add_argument(
         "--distributed",
         action="store_true",
@@ -90,6 +99,7 @@ def run(args) -> int:
         STRATEGIES,
         SolverSettings,
         StudyConfig,
+        check_results_fit,
         default_distribution,
         load_distribution,
         resolve_strategy,
@@ -118,6 +128,7 @@ def run(args) -> int:
             f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
         )
     check_tolerances(args)
+    check_out(args.out)
     controllers = controllers_from_args(args)
     distribution = (
         load_distribution(args.distribution) if args.distribution else default_distribution()
@@ -130,6 +141,7 @@ def run(args) -> int:
     if args.distributed:
         jax.distributed.initialize()
         host_index, host_count = jax.process_index(), jax.process_count()
+    check_results_fit(args.cases, len(controllers), distribution, host_count)
     hosts = f", host {host_index} of {host_count}" if host_count > 1 else ""
     print(
         f"afbl montecarlo: {args.cases} cases x {', '.join(controllers)} (seed {args.seed}, "
@@ -159,5 +171,6 @@ def run(args) -> int:
 def run_merge(args) -> int:
     from ..studies.montecarlo import merge_study
 
+    check_out(args.out)
     merge_study(args.shards, args.out, report=not args.no_report)
     return 0

@@ -9,6 +9,7 @@ from ._common import (
     UsageError,
     add_controllers,
     add_out,
+    check_out,
     check_tolerances,
     controllers_from_args,
 )
@@ -26,11 +27,24 @@ def register(sub) -> None:
     )
     add_out(p)
     add_controllers(p, "fbl,afbl,afbl_paper")
-    p.add_argument("--solver", default="tsit5", choices=["tsit5", "dopri5", "dopri8"])
+    p.add_argument(
+        "--solver",
+        default="tsit5",
+        choices=["tsit5", "dopri5", "dopri8"],
+        help="diffrax Runge-Kutta solver",
+    )
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance")
     p.add_argument("--atol", type=float, default=1e-10, help="absolute tolerance")
     p.add_argument("--n-save", type=int, default=2001, help="saved samples per run (>= 2)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument(
+        "--gyro-sign",
+        choices=["eq14", "physical"],
+        default="eq14",
+        help="rotor gyroscopic sign: eq14 = eq. (14) as printed (the faithful reproduction); "
+        "physical = the sign that matches the rotor spin directions of eq. (16), the default "
+        "of every other study (docs/paper_notes.md section 5)",
+    )
     add_unmodeled_arguments(p)
     p.set_defaults(func=run)
 
@@ -46,11 +60,15 @@ def run(args) -> int:
     if args.n_save < 2:
         raise UsageError(f"--n-save must be >= 2, got {args.n_save}.")
     check_tolerances(args)
+    check_out(args.out)
+    from ..model import EQ14_GYRO_SIGN, PHYSICAL_GYRO_SIGN
+
+    gyro_sign = EQ14_GYRO_SIGN if args.gyro_sign == "eq14" else PHYSICAL_GYRO_SIGN
     controllers = controllers_from_args(args)
     settings = unmodeled_from_args(args)
     print(
         f"running {len(controllers)} controllers x 4 scenarios ({args.solver}, rtol="
-        f"{args.rtol:g}, atol={args.atol:g}) ...",
+        f"{args.rtol:g}, atol={args.atol:g}, gyroscopic sign {args.gyro_sign}) ...",
         flush=True,
     )
     result = run_reproduction(
@@ -61,6 +79,7 @@ def run(args) -> int:
             atol=args.atol,
             n_save=args.n_save,
             unmodeled=settings,
+            gyro_sign=gyro_sign,
         )
     )
     args.out.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,16 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import Formatter, UsageError, add_controllers, add_out, controllers_from_args, floats
+from ._common import (
+    Formatter,
+    UsageError,
+    add_controllers,
+    add_out,
+    check_out,
+    controllers_from_args,
+    floats,
+    seed,
+)
 
 
 def add_unmodeled_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +56,7 @@ def add_unmodeled_arguments(p: argparse.ArgumentParser) -> None:
         "(angle 0.005 rad, rate 0.02 rad/s, z 0.02 m, zd 0.05 m/s; needs "
         "--control-rate)",
     )
-    g.add_argument("--seed", type=int, default=0, help="noise seed")
+    g.add_argument("--seed", type=seed, default=0, help="noise seed, in [0, 2^63 - 1]")
 
 
 def unmodeled_from_args(args, duration: float = 20.0):
@@ -104,9 +113,16 @@ def register(sub) -> None:
     p.add_argument(
         "--delay-samples", type=int, default=1, help="measurement delay in control samples"
     )
-    p.add_argument("--plant", choices=["paper", "full"], default="full")
-    p.add_argument("--seed", type=int, default=0, help="base noise seed")
-    p.add_argument("--no-figures", action="store_true")
+    p.add_argument(
+        "--plant",
+        choices=["paper", "full"],
+        default="full",
+        help="plant model: paper eq. 15 or the full rigid body",
+    )
+    p.add_argument(
+        "--seed", type=seed, default=0, help="base noise seed (the runs use seed + 1000 s + j)"
+    )
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=run)
 
 
@@ -118,6 +134,7 @@ def run(args) -> int:
         write_study,
     )
 
+    check_out(args.out)
     controllers = controllers_from_args(args)
     if args.delay_samples < 0 or args.seeds < 1:
         raise UsageError("--delay-samples must be >= 0 and --seeds >= 1.")

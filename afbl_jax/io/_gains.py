@@ -37,6 +37,16 @@ def gains_to_dict(controller: AbstractController) -> dict:
     return out
 
 
+def _finite_number(x) -> bool:
+    """A finite int or float (not a bool; an int too large for a float is not finite)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
 def controller_from_dict(data: dict, source: str = "gains") -> AbstractController:
     """Validate a gains dictionary and build its controller; errors say what is wrong and what
     is allowed."""
@@ -66,9 +76,10 @@ def controller_from_dict(data: dict, source: str = "gains") -> AbstractControlle
                 f"got {value!r}."
             )
         for x in value:
-            if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+            if not _finite_number(x):
                 raise ValueError(
-                    f"{source}: {file_key!r} has a non-numeric or non-finite entry {x!r}."
+                    f"{source}: {file_key!r} has a non-numeric or non-finite entry {x!r}; "
+                    "gains are finite numbers > 0."
                 )
             if x <= 0:
                 raise ValueError(f"{source}: {file_key!r} must be positive, got {value!r}.")
@@ -94,8 +105,10 @@ def load_gains(path: str | Path) -> AbstractController:
         raise ValueError(f"gains file {path} does not exist.") from None
     except IsADirectoryError:
         raise ValueError(f"gains file {path} is a directory, not a JSON file.") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+    except ValueError as err:  # syntax, encoding, integers too long to convert
         raise ValueError(f"gains file {path} is not valid JSON: {err}.") from None
+    except RecursionError:
+        raise ValueError(f"gains file {path} is nested too deeply to parse.") from None
     except OSError as err:
         raise ValueError(f"gains file {path} cannot be read: {err.strerror}.") from None
     return controller_from_dict(data, source=str(path))

@@ -27,24 +27,36 @@ def atomic_write_table(table, path: str | Path) -> None:
         raise
 
 
-def atomic_write_text(text: str, path: str | Path) -> None:
-    """Write ``text`` to ``path`` via a unique temporary file and an atomic rename."""
+def atomic_write_bytes(data: bytes, path: str | Path) -> None:
+    """Write ``data`` to ``path`` via a unique temporary file and an atomic rename."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
 
 
+def atomic_write_text(text: str, path: str | Path) -> None:
+    """Write ``text`` to ``path`` via a unique temporary file and an atomic rename."""
+    atomic_write_bytes(text.encode(), path)
+
+
 def read_table(path: str | Path):
-    """A parquet file as a pyarrow table."""
+    """A parquet file as a pyarrow table; a file that is not complete parquet (cut short,
+    overwritten) raises ValueError naming it."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    return pq.read_table(path)
+    try:
+        return pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as err:
+        if isinstance(err, OSError) and err.errno is not None:
+            raise  # an operating-system error (missing file, permissions), not the contents
+        raise ValueError(f"{path} is not a complete parquet file ({err})") from None
 
 
 def table_columns(table) -> dict[str, np.ndarray]:

@@ -4,10 +4,14 @@ aerodynamics, controllers and their sampling (continuous | digital)."""
 from ._actuators import AbstractActuators as AbstractActuators
 from ._actuators import FirstOrderRotors as FirstOrderRotors
 from ._actuators import InstantRotors as InstantRotors
+from ._aero import AERODYNAMIC_MODELS as AERODYNAMIC_MODELS
 from ._aero import AERODYNAMICS as AERODYNAMICS
 from ._aero import AbstractAerodynamics as AbstractAerodynamics
 from ._aero import LinearDrag as LinearDrag
+from ._aero import RotorDrag as RotorDrag
 from ._aero import aerodynamic_wrench as aerodynamic_wrench
+from ._aero import make_aerodynamics as make_aerodynamics
+from ._aero import rotor_drag_wrench as rotor_drag_wrench
 from ._mixer import actuate as actuate
 from ._mixer import allocation_matrix as allocation_matrix
 from ._mixer import inputs_from_rotor_speeds_sq as inputs_from_rotor_speeds_sq
@@ -16,6 +20,9 @@ from ._mixer import omega_d as omega_d
 from ._mixer import rotor_speeds_sq_from_inputs as rotor_speeds_sq_from_inputs
 from ._mixer import safe_sqrt as safe_sqrt
 from ._mixer import saturate_rotor_speeds_sq as saturate_rotor_speeds_sq
+from ._params import AERO_COEFFICIENTS as AERO_COEFFICIENTS
+from ._params import EQ14_GYRO_SIGN as EQ14_GYRO_SIGN
+from ._params import PHYSICAL_GYRO_SIGN as PHYSICAL_GYRO_SIGN
 from ._params import QuadrotorParams as QuadrotorParams
 from ._plant import CHANNEL_INDEX as CHANNEL_INDEX
 from ._plant import CHANNEL_RATE_INDEX as CHANNEL_RATE_INDEX

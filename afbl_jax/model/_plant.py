@@ -27,10 +27,10 @@ paper-layout state and `CHANNEL_RATE_INDEX` picks their rates.
 Differences from the printed eq. (15) (see docs/paper_notes.md):
 - roll/pitch torques are l*u1, l*u2 (eq. 12 and 24 have the arm length; eq. 15/16 drop it);
 - xdd, ydd use the third column of the ZYX rotation matrix (eq. 5 and 13 have typos);
-- gyroscopic term with Omega_d = -Omega1 + Omega2 - Omega3 + Omega4 (eq. 17) and the signs of
-  eq. (14): phidd gets -(Jr/Ix) thetad Omega_d, thetadd gets +(Jr/Iy) phid Omega_d (times
-  ``QuadrotorParams.gyro_sign``, default +1; -1 gives the sign consistent with the yaw-torque
-  convention of eq. 12/16, see docs/paper_notes.md);
+- gyroscopic term with Omega_d = -Omega1 + Omega2 - Omega3 + Omega4 (eq. 17): phidd gets
+  -(Jr/Ix) thetad Omega_d and thetadd +(Jr/Iy) phid Omega_d times ``QuadrotorParams.gyro_sign``:
+  +1 is eq. (14) as printed (`afbl reproduce`), -1 (the default) the sign that matches the
+  rotor spin directions implied by the yaw torque of eq. (16) (docs/paper_notes.md section 5);
 - the yaw row's Euler coupling is phid*thetad*(Ix - Iy)/Iz (Euler's equation; eq. 15 prints
   thetad*psid).
 """

@@ -1,11 +1,22 @@
 """Figures of a Monte-Carlo study (ISE vs payload, payload x gust heatmaps, ECDFs, worst cases),
-from the results columns alone; pyplot is imported on first use."""
+from the results columns alone; pyplot is imported on first use.
+
+Axes without anything to show (a controller without a successful run) say so in words instead
+of showing empty dummy axes; the figures use matplotlib's constrained layout, so titles and
+labels do not overlap.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 ISE_METRICS = ("ise_attitude", "ise_altitude")
+ISE_LABELS = {
+    "ise_attitude": "ISE attitude [rad$^2$ s]",
+    "ise_altitude": "ISE altitude [m$^2$ s]",
+}
+"""Axis labels (with units) of the ISE metrics."""
+NO_OK_RUNS = "no successful runs"
 
 
 def controller_names(cols: dict) -> list[str]:
@@ -35,37 +46,58 @@ def _log_scale_if_positive(ax, axis: str, values) -> None:
         (ax.set_yscale if axis == "y" else ax.set_xscale)("log")
 
 
+def _say_empty(ax, text: str = NO_OK_RUNS) -> None:
+    """Write ``text`` across an axes that has nothing to show (no dummy ticks)."""
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", color="0.3")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def _edges(x, n_bins: int) -> np.ndarray:
+    """Bin edges over the values (numpy's: a constant sample gets a unit-wide range around it)."""
+    return np.histogram_bin_edges(np.asarray(x, dtype=float), bins=n_bins)
+
+
 def figure_ise_vs_payload(cols):
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     p = cols["payload_fraction"]
-    edges = np.linspace(p.min(), p.max() + 1e-12, 11)
+    edges = _edges(p, 10)
     for ax, metric in zip(axes, ISE_METRICS, strict=True):
         plotted = [np.zeros(0)]
         for name in controller_names(cols):
             m = (cols["controller"] == name) & (cols["status"] == "ok")
+            if not np.any(m):
+                ax.plot([], [], label=f"{name}: {NO_OK_RUNS}")
+                continue
             c, med, lo, hi = _binned(p[m], cols[metric][m], edges)
             (line,) = ax.plot(c, med, marker="o", label=f"{name} median")
             ax.fill_between(c, lo, hi, color=line.get_color(), alpha=0.2, label=f"{name} P10-P90")
             plotted.append(lo)
-        ax.set_xlabel("payload fraction p")
-        ax.set_ylabel(metric)
+        if not np.any(cols["status"] == "ok"):
+            _say_empty(ax)
+            continue
+        ax.set_xlabel("payload fraction p [-]")
+        ax.set_ylabel(ISE_LABELS[metric])
         _log_scale_if_positive(ax, "y", np.concatenate(plotted))
         ax.legend(fontsize=7)
     fig.suptitle("ISE vs payload fraction (ok runs; binned median, P10-P90 band)")
-    fig.tight_layout()
     return fig
 
 
 def figure_heatmaps(cols, n_bins: int = 6):
+    """Per controller: failure probability (top) and median ISE attitude of the ok runs
+    (bottom) over payload x gust-speed bins. White cells hold no case (top), or no ok run
+    (bottom); the figure title says so."""
     import matplotlib.pyplot as plt
 
     names = controller_names(cols)
-    fig, axes = plt.subplots(2, len(names), figsize=(4.5 * len(names), 7), squeeze=False)
+    fig, axes = plt.subplots(
+        2, len(names), figsize=(4.5 * len(names) + 1, 7.4), squeeze=False, layout="constrained"
+    )
     p, g = cols["payload_fraction"], cols["gust_speed"]
-    pe = np.linspace(p.min(), p.max() + 1e-12, n_bins + 1)
-    ge = np.linspace(g.min(), g.max() + 1e-12, n_bins + 1)
+    pe, ge = _edges(p, n_bins), _edges(g, n_bins)
     for j, name in enumerate(names):
         m = cols["controller"] == name
         fail = np.full((n_bins, n_bins), np.nan)
@@ -80,10 +112,17 @@ def figure_heatmaps(cols, n_bins: int = 6):
                     fail[b, a] = np.mean(st[sel] != "ok")
                     okv = ise[sel & (st == "ok")]
                     med[b, a] = np.median(okv) if len(okv) else np.nan
-        for i, (data, title) in enumerate(
-            ((fail, "failure probability"), (med, "median ISE attitude (ok runs)"))
+        for i, (data, title, unit) in enumerate(
+            (
+                (fail, "failure probability", "failure probability [-]"),
+                (med, "median ISE attitude (ok runs)", "median " + ISE_LABELS["ise_attitude"]),
+            )
         ):
             ax = axes[i, j]
+            ax.set_title(f"{name}: {title}", fontsize=9)
+            if np.all(np.isnan(data)):
+                _say_empty(ax)
+                continue
             limits = {"vmin": 0.0, "vmax": 1.0} if i == 0 else {}
             im = ax.imshow(
                 data,
@@ -93,32 +132,40 @@ def figure_heatmaps(cols, n_bins: int = 6):
                 cmap="viridis",
                 **limits,
             )
-            fig.colorbar(im, ax=ax)
-            ax.set_title(f"{name}: {title}", fontsize=9)
-            ax.set_xlabel("payload fraction p")
+            fig.colorbar(im, ax=ax, label=unit)
+            ax.set_xlabel("payload fraction p [-]")
             ax.set_ylabel("gust speed [m/s]")
-    fig.tight_layout()
+    fig.suptitle(
+        "payload x gust speed; white cells: no case in the bin (top), no successful run in "
+        "the bin (bottom)",
+        fontsize=10,
+    )
     return fig
 
 
 def figure_ecdf(cols):
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     for ax, metric in zip(axes, ISE_METRICS, strict=True):
         plotted = [np.zeros(0)]
         for name in controller_names(cols):
             m = (cols["controller"] == name) & (cols["status"] == "ok")
+            if not np.any(m):
+                ax.plot([], [], label=f"{name}: {NO_OK_RUNS}")
+                continue
             x = np.sort(cols[metric][m])
             n_all = int(np.sum(cols["controller"] == name))
             ax.step(x, np.arange(1, len(x) + 1) / n_all, where="post", label=name)
             plotted.append(x)
+        if not np.any(cols["status"] == "ok"):
+            _say_empty(ax)
+            continue
         _log_scale_if_positive(ax, "x", np.concatenate(plotted))
-        ax.set_xlabel(metric)
-        ax.set_ylabel("fraction of all cases (failed runs never reach 1)")
+        ax.set_xlabel(ISE_LABELS[metric])
         ax.legend()
-    fig.suptitle("ECDF of ISE")
-    fig.tight_layout()
+    axes[0].set_ylabel("fraction of all cases [-]")
+    fig.suptitle("ECDF of ISE over all cases (failed runs count as never reaching the level)")
     return fig
 
 
@@ -126,7 +173,7 @@ def figure_worst(replays: dict):
     import matplotlib.pyplot as plt
 
     n = max(len(replays), 1)
-    fig, axes = plt.subplots(n, 2, figsize=(11, 2.4 * n), squeeze=False)
+    fig, axes = plt.subplots(n, 2, figsize=(11, 2.4 * n), squeeze=False, layout="constrained")
     for i, (case, runs) in enumerate(replays.items()):
         for name, r in runs.items():
             valid = np.asarray(r.ts) <= float(r.t_final)
@@ -145,5 +192,4 @@ def figure_worst(replays: dict):
     axes[-1, 0].set_xlabel("t [s]")
     axes[-1, 1].set_xlabel("t [s]")
     fig.suptitle("five worst cases, re-simulated")
-    fig.tight_layout()
     return fig

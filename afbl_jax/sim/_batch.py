@@ -47,7 +47,12 @@ import numpy as np
 
 from .._validation import check_positive, concrete
 from ..metrics import BatchMetrics, metrics_from_result
-from ..model import AbstractController, QuadrotorParams, UnmodeledDynamics
+from ..model import (
+    AbstractAerodynamics,
+    AbstractController,
+    QuadrotorParams,
+    UnmodeledDynamics,
+)
 from ..scenario import Scenario
 from ._closed_loop import CaseInputs, ClosedLoop, DivergenceLimits
 from ._ensemble import INTEGRATORS, solve_group
@@ -263,6 +268,7 @@ def simulate_batch(
     models: QuadrotorParams | None = None,
     *,
     unmodeled: UnmodeledDynamics | None = None,
+    aerodynamics: AbstractAerodynamics | str | None = None,
     strategy: Literal["vmap", "ensemble"] = "ensemble",
     solver: str | diffrax.AbstractSolver = "tsit5",
     rtol: float = 1e-6,
@@ -286,6 +292,8 @@ def simulate_batch(
         unmodeled: `UnmodeledDynamics`, shared or batched (`stack_unmodeled`); None: the
             paper's closed loop. With digital control and ``"ensemble"``, every group's cases
             must share one control rate.
+        aerodynamics: aerodynamic model (name or instance, as in `simulate`; shared by all
+            cases, its coefficients batched with the vehicles); None: `LinearDrag`.
         strategy: ``"ensemble"`` (groups of cases as one ODE system each; default) or
             ``"vmap"``.
         solver: diffrax solver or name (as in `simulate`).
@@ -357,7 +365,7 @@ def simulate_batch(
                     f"simulate_batch: strategy 'ensemble' needs one {name} for all "
                     f"cases, got values from {v.min()} to {v.max()} [s]."
                 )
-    loop = ClosedLoop.make(controller, unmodeled)
+    loop = ClosedLoop.make(controller, unmodeled, aerodynamics)
     if strategy == "ensemble":
         _check_group_rates(
             loop,

@@ -42,13 +42,13 @@ from ..model import (
     AbstractSampling,
     ContinuousControl,
     InstantRotors,
-    LinearDrag,
     PaperPlant,
     QuadrotorParams,
     UnmodeledDynamics,
     diverged_from,
     hover_input,
     inputs_from_rotor_speeds_sq,
+    make_aerodynamics,
     mix,
     omega_d,
     safe_sqrt,
@@ -123,28 +123,34 @@ class ClosedLoop(eqx.Module):
         controller: `FBLPID`, `AFBL` or `AFBLPaper` (gains dynamic).
         plant: `PaperPlant` (default) or `RigidBodyPlant`.
         actuators: `InstantRotors` (default) or `FirstOrderRotors` (tau_m dynamic).
-        aerodynamics: `LinearDrag` (default).
+        aerodynamics: `LinearDrag` (default) or `RotorDrag` (coefficients in the vehicle).
         sampling: `ContinuousControl` (default) or `DigitalControl`.
     """
 
     controller: AbstractController
     plant: AbstractPlant = eqx.field(default_factory=PaperPlant)
     actuators: AbstractActuators = eqx.field(default_factory=InstantRotors)
-    aerodynamics: AbstractAerodynamics = eqx.field(default_factory=LinearDrag)
+    aerodynamics: AbstractAerodynamics = eqx.field(default_factory=make_aerodynamics)
     sampling: AbstractSampling = eqx.field(default_factory=ContinuousControl)
 
     @classmethod
     def make(
-        cls, controller: AbstractController, unmodeled: UnmodeledDynamics | None = None
+        cls,
+        controller: AbstractController,
+        unmodeled: UnmodeledDynamics | None = None,
+        aerodynamics: AbstractAerodynamics | str | None = None,
     ) -> ClosedLoop:
-        """The paper's loop (``unmodeled`` None) or the loop the settings name."""
+        """The paper's loop (``unmodeled`` None) or the loop the settings name, with the
+        aerodynamic model ``aerodynamics`` (a name of `afbl_jax.model.AERODYNAMICS`, an
+        instance, or None: `LinearDrag`)."""
+        aero = make_aerodynamics(aerodynamics)
         if unmodeled is None:
-            return cls(controller)
+            return cls(controller, aerodynamics=aero)
         return cls(
             controller,
             unmodeled.plant_model(),
             unmodeled.actuator_model(),
-            LinearDrag(),
+            aero,
             unmodeled.sampling_model(),
         )
 
@@ -199,7 +205,8 @@ class ClosedLoop(eqx.Module):
         u = inputs_from_rotor_speeds_sq(vehicle, w)
         w_hover = vehicle.m * vehicle.g / (4.0 * vehicle.b)
         force, torque = sc.disturbance(t)
-        wind_force, wind_torque = self.aerodynamics.wrench(sc.wind(t), y.plant, vehicle, omega)
+        air_state = self.plant.to_paper_layout(y.plant)
+        wind_force, wind_torque = self.aerodynamics.wrench(sc.wind(t), air_state, vehicle, omega)
         force, torque = force + wind_force, torque + wind_torque
         mass = vehicle.m * sc.mass_factor(t)
         dplant = self.plant.derivative(vehicle, y.plant, u, omega_d(omega), mass, force, torque)

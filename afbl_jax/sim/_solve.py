@@ -18,7 +18,12 @@ import jax.numpy as jnp
 
 from .._typing import Array, Float, Int, Scalar
 from .._validation import check_positive
-from ..model import AbstractController, QuadrotorParams, UnmodeledDynamics
+from ..model import (
+    AbstractAerodynamics,
+    AbstractController,
+    QuadrotorParams,
+    UnmodeledDynamics,
+)
 from ..scenario import Scenario
 from ._closed_loop import (
     CaseInputs,
@@ -291,6 +296,7 @@ def simulate(
     limits: DivergenceLimits | None = None,
     adjoint: diffrax.AbstractAdjoint | None = None,
     unmodeled: UnmodeledDynamics | None = None,
+    aerodynamics: AbstractAerodynamics | str | None = None,
 ) -> SimulationResult:
     """Simulate one closed-loop case.
 
@@ -311,10 +317,12 @@ def simulate(
         unmodeled: unmodeled dynamics (full rigid-body plant, motor lag, digital control with
             noise and delay; `afbl_jax.model.UnmodeledDynamics`). None (default): the paper's
             model with a continuous controller.
+        aerodynamics: aerodynamic model, a name ("linear", "rotor_drag") or an
+            `AbstractAerodynamics`; None (default): `LinearDrag` (coefficients in ``vehicle``).
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
-    loop = closed_loop_of(controller, unmodeled)
+    loop = closed_loop_of(controller, unmodeled, aerodynamics)
     vehicle = QuadrotorParams() if vehicle is None else vehicle
     model = vehicle if model is None else model
     limits = DivergenceLimits() if limits is None else limits
@@ -334,15 +342,17 @@ def simulate(
     )
 
 
-def closed_loop_of(controller, unmodeled=None) -> ClosedLoop:
+def closed_loop_of(controller, unmodeled=None, aerodynamics=None) -> ClosedLoop:
     """The `ClosedLoop` a `simulate` call describes (a controller plus optional settings)."""
     if isinstance(controller, ClosedLoop):
-        if unmodeled is not None:
-            raise ValueError("give either a ClosedLoop or unmodeled settings, not both.")
+        if unmodeled is not None or aerodynamics is not None:
+            raise ValueError(
+                "give either a ClosedLoop or unmodeled/aerodynamics settings, not both."
+            )
         return controller
     if not isinstance(controller, AbstractController):
         raise TypeError(
             f"controller must be an AbstractController or a ClosedLoop, got "
             f"{type(controller).__name__}."
         )
-    return ClosedLoop.make(controller, unmodeled)
+    return ClosedLoop.make(controller, unmodeled, aerodynamics)

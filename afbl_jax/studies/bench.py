@@ -159,6 +159,7 @@ _P = {
     "Jr": 6e-5,
     "l": 0.23,
     "g": 9.81,
+    "gyro_sign": -1.0,  # QuadrotorParams() default (PHYSICAL_GYRO_SIGN), as the cases use
 }
 _STEPS = (
     (3, 1.0, 1.0),
@@ -227,10 +228,16 @@ def _numpy_rhs(t, y, mass_factor, torque, force_z, gamma, k, lam):
     dy[7] = (cphi * sth * spsi - sphi * cpsi) * U[3] / m
     dy[8] = -p["g"] + cphi * cth * U[3] / m + fz / m
     dy[9] = (
-        thetad * psid * (iy - iz) / ix - (p["Jr"] / ix) * thetad * od + arm * U[0] / ix + tq[0] / ix
+        thetad * psid * (iy - iz) / ix
+        - (p["gyro_sign"] * p["Jr"] / ix) * thetad * od
+        + arm * U[0] / ix
+        + tq[0] / ix
     )
     dy[10] = (
-        phid * psid * (iz - ix) / iy + (p["Jr"] / iy) * phid * od + arm * U[1] / iy + tq[1] / iy
+        phid * psid * (iz - ix) / iy
+        + (p["gyro_sign"] * p["Jr"] / iy) * phid * od
+        + arm * U[1] / iy
+        + tq[1] / iy
     )
     dy[11] = phid * thetad * (ix - iy) / iz + U[2] / iz + tq[2] / iz
     dy[12:16] = -s / gamma

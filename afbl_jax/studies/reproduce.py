@@ -16,8 +16,10 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .._validation import as_float
 from ..io import gains_to_dict, run_metadata
 from ..model import (
+    EQ14_GYRO_SIGN,
     AbstractController,
     QuadrotorParams,
     UnmodeledDynamics,
@@ -84,6 +86,9 @@ class ReproduceConfig:
         solver, rtol, atol: diffrax solver name and tolerances.
         n_save: saved samples per run (figures).
         unmodeled: unmodeled-dynamics settings (default None: the paper's model).
+        gyro_sign: rotor gyroscopic sign applied to the vehicle: `EQ14_GYRO_SIGN` (+1, default:
+            eq. 14 as printed, the faithful reproduction) or `PHYSICAL_GYRO_SIGN` (-1, the sign
+            that matches the rotor spin directions, the default of every other study).
     """
 
     controllers: dict | None = None
@@ -93,6 +98,7 @@ class ReproduceConfig:
     atol: float = 1e-10
     n_save: int = 2001
     unmodeled: UnmodeledDynamics | None = None
+    gyro_sign: float = EQ14_GYRO_SIGN
 
 
 def run_reproduction(config: ReproduceConfig | None = None) -> ReproductionResult:
@@ -101,6 +107,8 @@ def run_reproduction(config: ReproduceConfig | None = None) -> ReproductionResul
     controllers = cfg.controllers
     if controllers is None:
         controllers = {name: make_controller(name) for name in DEFAULT_CONTROLLERS}
+    vehicle = QuadrotorParams() if cfg.vehicle is None else cfg.vehicle
+    vehicle = eqx.tree_at(lambda v: v.gyro_sign, vehicle, as_float(cfg.gyro_sign))
     pairs = [(k, p) for k in SCENARIO_KINDS for p in PROFILES]
     batch = stack_scenarios([paper_scenario(k, p) for k, p in pairs])
     runs: dict[str, dict[str, SimulationResult]] = {key: {} for key in SCENARIO_KEYS}
@@ -110,7 +118,7 @@ def run_reproduction(config: ReproduceConfig | None = None) -> ReproductionResul
             return simulate(
                 ctrl,
                 scenario,
-                cfg.vehicle,
+                vehicle,
                 solver=cfg.solver,
                 rtol=cfg.rtol,
                 atol=cfg.atol,
@@ -127,7 +135,7 @@ def run_reproduction(config: ReproduceConfig | None = None) -> ReproductionResul
         "atol": cfg.atol,
         "n_save": cfg.n_save,
         "controllers": {n: gains_to_dict(c) for n, c in controllers.items()},
-        "vehicle": {k: float(v) for k, v in _fields(cfg.vehicle or QuadrotorParams()).items()},
+        "vehicle": {k: float(v) for k, v in _fields(vehicle).items()},
     }
     if cfg.unmodeled is not None:
         config["unmodeled"] = unmodeled_config(cfg.unmodeled)

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._validation import MAX_SEED
 from ..io import gains_to_dict, run_metadata
 from ..model import UnmodeledDynamics, make_controller, stack_unmodeled
 from ..scenario import PROFILES, SCENARIO_KINDS, paper_scenario, stack_scenarios
@@ -128,6 +129,11 @@ def run_unmodeled_study(config: UnmodeledStudyConfig | None = None) -> Unmodeled
         controllers = {n: make_controller(n) for n in ("fbl", "afbl")}
     if not taus or not rates or not noise_levels or n_seeds < 1:
         raise ValueError("taus, rates and noise_levels must be non-empty and n_seeds >= 1.")
+    if not 0 <= seed <= MAX_SEED - 1000 * n_seeds:
+        raise ValueError(
+            f"seed must lie in [0, 2^63 - 1 - 1000 x {n_seeds} seeds] (the runs use the noise "
+            f"seeds seed + 1000 s + j), got {seed}."
+        )
     if any(t < 0 for t in taus) or any(r <= 0 for r in rates) or any(n < 0 for n in noise_levels):
         raise ValueError("motor taus must be >= 0 s, rates > 0 Hz, noise levels >= 0.")
     scenarios = [paper_scenario(k, p) for k in SCENARIO_KINDS for p in PROFILES]

@@ -80,7 +80,8 @@ def test_pure_roll_torque_moves_only_phi():
 
 
 def test_gyroscopic_term_signs_and_energy():
-    # phidd gets -(Jr/Ix) thetad Omega_d, thetadd gets +(Jr/Iy) phid Omega_d (eq. 14)
+    # eq. 14: phidd gets -(Jr/Ix) thetad Omega_d, thetadd gets +(Jr/Iy) phid Omega_d
+    P = A.QuadrotorParams(gyro_sign=A.EQ14_GYRO_SIGN)
     state = jnp.zeros(12).at[9].set(0.3).at[10].set(-0.2)
     u0 = jnp.array([0.0, 0.0, 0.0, P.m * P.g])
     omega_d = 50.0
@@ -91,9 +92,14 @@ def test_gyroscopic_term_signs_and_energy():
     # a gyroscopic torque does no work: Ix phid dphid + Iy thetad dthetad = 0
     work = P.Ix * 0.3 * (d1[9] - d0[9]) + P.Iy * (-0.2) * (d1[10] - d0[10])
     np.testing.assert_allclose(work, 0.0, atol=1e-15)
-    flipped = A.QuadrotorParams(gyro_sign=-1.0)
-    d2 = A.plant_derivative(flipped, state, u0, omega_d, P.m, jnp.zeros(3), jnp.zeros(3))
-    np.testing.assert_allclose(d2[9] - d0[9], -(d1[9] - d0[9]), rtol=1e-12)
+    # the default is the other sign: spin directions s = (+, -, +, -) of the eq. 16 yaw torque
+    # give Omega_r = -Omega_d and Euler's -omega x (Jr Omega_r e_z) = Jr Omega_r (-q, p, 0)
+    physical = A.QuadrotorParams()
+    assert float(physical.gyro_sign) == A.PHYSICAL_GYRO_SIGN == -1.0
+    d2 = A.plant_derivative(physical, state, u0, omega_d, P.m, jnp.zeros(3), jnp.zeros(3))
+    omega_r = -omega_d
+    np.testing.assert_allclose(d2[9] - d0[9], P.Jr / P.Ix * (-(-0.2)) * omega_r, rtol=1e-12)
+    np.testing.assert_allclose(d2[10] - d0[10], P.Jr / P.Iy * 0.3 * omega_r, rtol=1e-12)
 
 
 def test_euler_coupling_conserves_rotational_energy():

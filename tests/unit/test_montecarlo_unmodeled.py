@@ -130,6 +130,7 @@ def test_chunk_case_equals_single_unmodeled_simulation(digital, fbl):
         n_save=SETTINGS.n_save,
         max_steps=SETTINGS.max_steps,
         unmodeled=settings,
+        aerodynamics=batch.aerodynamics,
     )
     assert np.isclose(out["ise_attitude"][i], float(r.ise_attitude), rtol=1e-9, atol=1e-14)
     assert np.isclose(out["ise_altitude"][i], float(r.ise_altitude), rtol=1e-9, atol=1e-14)
@@ -144,6 +145,7 @@ def test_chunk_case_equals_single_unmodeled_simulation(digital, fbl):
         atol=SETTINGS.atol,
         n_save=SETTINGS.n_save,
         max_steps=SETTINGS.max_steps,
+        aerodynamics=batch.aerodynamics,
     )
     assert not np.isclose(float(plain.ise_attitude), float(r.ise_attitude), rtol=1e-3)
     # results table carries the sampled numbers
@@ -190,6 +192,7 @@ def test_ensemble_with_unmodeled_agrees_with_single_simulation(digital, fbl, str
             atol=1e-11,
             n_save=31,
             unmodeled=batch.unmodeled_case(i),
+            aerodynamics=batch.aerodynamics,
         )
         for k in ("ise_attitude", "ise_altitude"):
             np.testing.assert_allclose(out[k][i], float(getattr(r, k)), rtol=bound, err_msg=k)

@@ -43,8 +43,9 @@ def test_ise_of_hand_computable_case():
 @pytest.mark.parametrize("controller", ["fbl", "afbl", "afbl_paper"])
 def test_agrees_with_independent_numpy_scipy_integration(controller):
     ctrl = A.make_controller(controller)
+    eq14 = A.QuadrotorParams(gyro_sign=A.EQ14_GYRO_SIGN)  # the reference writes eq. 14's sign
     for kind, profile in [("uncertain", "step"), ("ideal", "sine")]:
-        ours = A.simulate(ctrl, A.paper_scenario(kind, profile), n_save=0, **TIGHT)
+        ours = A.simulate(ctrl, A.paper_scenario(kind, profile), eq14, n_save=0, **TIGHT)
         ref = simulate_reference(controller, kind, profile, rtol=1e-11, atol=1e-12)
         assert int(ours.status) == 0
         for key in ("ise_attitude", "ise_altitude"):
@@ -192,3 +193,31 @@ def test_result_signals_are_consistent():
         r.rotor_speeds**2 @ np.full(4, float(A.QuadrotorParams().b)), r.u_applied[:, 3], rtol=1e-12
     )
     np.testing.assert_allclose(r.final.plant, r.plant[-1], rtol=1e-12, atol=1e-14)
+
+
+def test_reproduction_keeps_eq14_gyro_sign_and_switches():
+    """`afbl reproduce` runs eq. 14's sign by default (the README table); the physical sign, the
+    library default, is one flag away and gives the default vehicle's numbers."""
+    from afbl_jax.cli import build_parser
+    from afbl_jax.studies.reproduce import ReproduceConfig, run_reproduction
+
+    ctrl = {"fbl": A.FBLPID()}
+    faithful = run_reproduction(ReproduceConfig(ctrl, n_save=2, rtol=1e-6, atol=1e-8))
+    physical = run_reproduction(
+        ReproduceConfig(ctrl, n_save=2, rtol=1e-6, atol=1e-8, gyro_sign=A.PHYSICAL_GYRO_SIGN)
+    )
+    assert faithful.config["vehicle"]["gyro_sign"] == 1.0
+    assert physical.config["vehicle"]["gyro_sign"] == -1.0
+    sc = A.paper_scenario("uncertain", "step")
+    eq14 = A.QuadrotorParams(gyro_sign=A.EQ14_GYRO_SIGN)
+    for result, vehicle in ((faithful, eq14), (physical, A.QuadrotorParams())):
+        ref = A.simulate(A.FBLPID(), sc, vehicle, n_save=2, rtol=1e-6, atol=1e-8)
+        got = result.ise()["uncertain_step"]["fbl"]["ise_attitude"]
+        np.testing.assert_allclose(got, float(ref.ise_attitude), rtol=1e-9)
+    a = faithful.ise()["uncertain_step"]["fbl"]["ise_attitude"]
+    b = physical.ise()["uncertain_step"]["fbl"]["ise_attitude"]
+    assert 1e-3 < abs(a - b) / a < 0.05
+    args = build_parser().parse_args(["reproduce", "--out", "x"])
+    assert args.gyro_sign == "eq14"
+    args = build_parser().parse_args(["reproduce", "--out", "x", "--gyro-sign", "physical"])
+    assert args.gyro_sign == "physical"

@@ -16,7 +16,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ...scenario import TURBULENCE_INTENSITIES
+from ...model import AERODYNAMIC_MODELS
+from ...scenario import ROUGHNESS_LENGTH, TURBULENCE_INTENSITIES
 
 DEFAULT_DISTRIBUTION: dict = {
     "payload": {
@@ -29,9 +30,17 @@ DEFAULT_DISTRIBUTION: dict = {
         "drag_coefficient_scale": [0.9, 1.1],  # d (rotor yaw-torque coefficient)
         "thrust_to_weight": [2.5, 2.5],  # omega_max set for this ratio at nominal mass and b
     },
-    "aero": {
-        "drag_coefficient": [0.1, 0.3],  # linear drag c_d [N s/m]
-        "cp_offset": [0.0, 0.03],  # centre of pressure above the centre of mass [m]
+    "aero": {  # afbl_jax.model aerodynamics; model shared by all cases, coefficients per case
+        "model": "rotor_drag",  # "rotor_drag" (H-force at the hubs + parasitic) or "linear"
+        "drag_coefficient": [0.1, 0.3],  # linear drag c_d [N s/m] ("linear")
+        "cp_offset": [0.0, 0.03],  # centre of pressure of the body drag above the CoM [m]
+        # rotor drag ("rotor_drag"): from the Hummingbird's identified values (RotorPy) up to
+        # those scaled to Table 1's larger rotors (k ~ R^3, c_D ~ arm^2; docs/paper_notes.md)
+        "rotor_drag_horizontal": [1.19e-4, 4.34e-4],  # k_d [N / ((rad/s) (m/s))]
+        "rotor_drag_vertical": [2.32e-4, 8.47e-4],  # k_z [N / ((rad/s) (m/s))]
+        "parasitic_drag_horizontal": [5.0e-3, 9.15e-3],  # c_D body x, y [N / (m/s)^2]
+        "parasitic_drag_vertical": [1.0e-2, 1.83e-2],  # c_D body z [N / (m/s)^2]
+        "hub_height": [0.0, 0.05],  # rotor hubs above the centre of mass [m]
     },
     "pulses": {  # the paper's rectangular disturbance pulses
         "enabled": True,
@@ -40,21 +49,32 @@ DEFAULT_DISTRIBUTION: dict = {
         "start": [2.0, 16.0],  # [s], torque and force pulse sampled independently
         "duration": [0.2, 2.0],  # [s]
     },
-    "gust": {  # one MIL-F-8785C 1-cosine gust per case
+    "gust": {  # one MIL-F-8785C 1-cosine gust per case (u, v, w along the mean wind)
         "enabled": True,
-        "horizontal_amplitude": [0.0, 6.0],  # |A_x|, |A_y| [m/s], random sign
-        "vertical_amplitude": [0.0, 2.0],  # |A_z| [m/s], random sign
+        # "turbulence": magnitude per axis = sigma_multiple x sigma sqrt(2 (1 - rho(d_m))), tied
+        # to the gust length d_m = airspeed x build-up time, the Dryden scale length and sigma;
+        # "independent": magnitudes drawn from the amplitude ranges below
+        "magnitude": "turbulence",
+        "sigma_multiple": [1.0, 3.0],  # standard deviations of the velocity change ("turbulence")
+        "horizontal_amplitude": [0.0, 6.0],  # |A_u|, |A_v| [m/s] ("independent"), random sign
+        "vertical_amplitude": [0.0, 2.0],  # |A_w| [m/s] ("independent"), random sign
         "buildup_time": [0.5, 3.0],  # per axis [s]
         "start": [2.0, 16.0],  # [s]
+    },
+    "mean_wind": {  # steady wind at the altitude, MIL-F-8785C low-altitude log profile
+        "enabled": True,
+        "source": "w20",  # "w20": from W20 of the case's turbulence intensity; "speed": below
+        "speed": [5.0, 5.0],  # mean-wind speed at the altitude [m/s] (source = "speed")
+        "direction": [-3.141592653589793, 3.141592653589793],  # azimuth it blows towards [rad]
     },
     "turbulence": {  # Dryden, MIL-HDBK-1797 low altitude, sum of sinusoids
         "enabled": True,
         "intensity_probabilities": {"none": 0.0, "light": 0.5, "moderate": 0.35, "severe": 0.15},
-        "airspeed": 5.0,  # [m/s] mean-wind speed that carries the frozen turbulence field
-        "altitude": 10.0,  # [m]
-        "n_frequencies": 32,
-        "omega_min": 0.005,  # [rad/s]
-        "omega_max": 20.0,  # [rad/s]
+        "airspeed": 0.0,  # [m/s] carrying the frozen field; 0 = the case's mean-wind speed
+        "altitude": 10.0,  # [m] of the turbulence and of the mean wind
+        "n_frequencies": 64,
+        "omega_min": 0.0005,  # [rad/s]
+        "omega_max": 300.0,  # [rad/s]
     },
     "initial": {
         "attitude": [-0.1, 0.1],  # phi, theta, psi at t0 [rad]
@@ -85,14 +105,22 @@ _RANGE_RULES = {
     ("model_error", "thrust_to_weight"): (1.0, False),
     ("aero", "drag_coefficient"): (0.0, True),
     ("aero", "cp_offset"): (None, True),
+    ("aero", "rotor_drag_horizontal"): (0.0, True),
+    ("aero", "rotor_drag_vertical"): (0.0, True),
+    ("aero", "parasitic_drag_horizontal"): (0.0, True),
+    ("aero", "parasitic_drag_vertical"): (0.0, True),
+    ("aero", "hub_height"): (None, True),
     ("pulses", "torque"): (None, True),
     ("pulses", "vertical_force"): (None, True),
     ("pulses", "start"): (0.0, True),
     ("pulses", "duration"): (0.0, True),
+    ("gust", "sigma_multiple"): (0.0, True),
     ("gust", "horizontal_amplitude"): (0.0, True),
     ("gust", "vertical_amplitude"): (0.0, True),
     ("gust", "buildup_time"): (0.0, False),
     ("gust", "start"): (0.0, True),
+    ("mean_wind", "speed"): (0.0, True),
+    ("mean_wind", "direction"): (None, True),
     ("initial", "attitude"): (-1.2, False),
     ("initial", "rate"): (None, True),
     ("unmodeled", "motor_tau"): (0.0, True),
@@ -110,13 +138,19 @@ _PROB_RULES = {
 _BOOL_KEYS = {
     ("pulses", "enabled"),
     ("gust", "enabled"),
+    ("mean_wind", "enabled"),
     ("turbulence", "enabled"),
     ("unmodeled", "enabled"),
 }
 _INT_RANGE_KEYS = {("unmodeled", "delay_samples")}
-_CHOICE_KEYS = {("unmodeled", "plant"): ("paper", "full")}
+_CHOICE_KEYS = {
+    ("unmodeled", "plant"): ("paper", "full"),
+    ("aero", "model"): AERODYNAMIC_MODELS,
+    ("gust", "magnitude"): ("turbulence", "independent"),
+    ("mean_wind", "source"): ("w20", "speed"),
+}
+_NONNEGATIVE_KEYS = {("turbulence", "airspeed")}
 _POSITIVE_KEYS = {
-    ("turbulence", "airspeed"),
     ("turbulence", "altitude"),
     ("turbulence", "omega_min"),
     ("turbulence", "omega_max"),
@@ -126,12 +160,20 @@ _INT_KEYS = {("turbulence", "n_frequencies")}
 
 
 def _is_number(x) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+    """A finite int or float (not a bool; an int too large for a float is not finite)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 def _validate(spec: dict, source: str) -> None:
     if not isinstance(spec, dict):
-        raise ValueError(f"{source}: expected a table/object of sections, got {type(spec)}.")
+        raise ValueError(
+            f"{source}: expected a table/object of sections, got {type(spec).__name__}."
+        )
     for section, body in spec.items():
         if section not in DEFAULT_DISTRIBUTION:
             raise ValueError(
@@ -194,6 +236,9 @@ def _validate(spec: dict, source: str) -> None:
             elif k in _INT_KEYS:
                 if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                     raise ValueError(f"{where} must be an integer >= 1, got {value!r}.")
+            elif k in _NONNEGATIVE_KEYS:
+                if not _is_number(value) or value < 0:
+                    raise ValueError(f"{where} must be a finite number >= 0, got {value!r}.")
             elif k in _POSITIVE_KEYS:
                 if not _is_number(value) or value <= 0:
                     raise ValueError(f"{where} must be a finite number > 0, got {value!r}.")
@@ -216,6 +261,18 @@ class Distribution:
         turb = self.spec["turbulence"]
         if turb["omega_min"] >= turb["omega_max"]:
             raise ValueError(f"{self.source}: turbulence.omega_min must be < omega_max.")
+        if turb["altitude"] <= ROUGHNESS_LENGTH:
+            raise ValueError(
+                f"{self.source}: turbulence.altitude must exceed the wind profile's roughness "
+                f"length {ROUGHNESS_LENGTH:.4f} m, got {turb['altitude']}."
+            )
+        wind = self.spec["mean_wind"]
+        if turb["airspeed"] == 0 and wind["source"] == "speed" and wind["speed"][0] <= 0:
+            raise ValueError(
+                f"{self.source}: turbulence.airspeed = 0 carries the turbulence at the mean-wind "
+                f"speed, so mean_wind.speed must be > 0 [m/s], got {wind['speed']}; or set "
+                "turbulence.airspeed > 0."
+            )
         for section, key in (("payload", "attach_time"), ("pulses", "start"), ("gust", "start")):
             if self.spec[section][key][1] >= t1:
                 raise ValueError(
@@ -283,11 +340,22 @@ def load_distribution(path: str | Path) -> Distribution:
         text = path.read_bytes()
     except FileNotFoundError:
         raise ValueError(f"distribution file {path} does not exist.") from None
+    except IsADirectoryError:
+        raise ValueError(
+            f"distribution file {path} is a directory; give a .toml or .json file."
+        ) from None
+    except OSError as err:
+        raise ValueError(f"distribution file {path} cannot be read: {err.strerror}.") from None
     try:
         if path.suffix.lower() == ".toml":
             data = tomllib.loads(text.decode())
         else:
             data = json.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"distribution file {path} could not be parsed: {err}.") from None
+    except ValueError as err:  # TOML/JSON syntax, encoding, integers too long to convert
+        kind = "TOML" if path.suffix.lower() == ".toml" else "JSON (or name it .toml)"
+        raise ValueError(
+            f"distribution file {path} could not be parsed as {kind}: {err}."
+        ) from None
+    except RecursionError:
+        raise ValueError(f"distribution file {path} is nested too deeply to parse.") from None
     return Distribution.from_dict(data, source=str(path))

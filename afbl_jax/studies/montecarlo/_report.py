@@ -10,6 +10,10 @@ file):
 - paired win rate of a controller over the baseline (fbl when present) for a metric: over the
   cases where at least one of the two is ok, the fraction where the challenger is ok and either
   the baseline failed or the challenger's value is strictly smaller; 95 % Wilson interval.
+
+A number that is undefined (percentiles of a controller without a successful run, a win rate
+over no counted case) is None in the summary, ``null`` in summary.json (strict JSON: never
+``NaN``) and written out in words in the tables ("no successful runs").
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...io import atomic_write_bytes, atomic_write_text
 from ...plotting.montecarlo import (
     controller_names,
     figure_ecdf,
@@ -36,6 +41,9 @@ from ...sim import STATUS_LABELS
 ISE_METRICS = ("ise_attitude", "ise_altitude")
 PERCENTILES = (50, 90, 99)
 Z95 = 1.959963984540054
+
+
+NO_OK_RUNS = "no successful runs"
 
 
 def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -74,10 +82,8 @@ def summarize(cols: dict) -> dict:
         }
         for metric in ISE_METRICS:
             x = _per_case(cols, name, metric)[ok]
-            stats = {
-                f"p{q}": float(np.percentile(x, q)) if len(x) else math.nan for q in PERCENTILES
-            }
-            stats["max"] = float(np.max(x)) if len(x) else math.nan
+            stats = {f"p{q}": float(np.percentile(x, q)) if len(x) else None for q in PERCENTILES}
+            stats["max"] = float(np.max(x)) if len(x) else None
             entry[metric] = stats
         out["controllers"][name] = entry
     baseline = "fbl" if "fbl" in names else names[0]
@@ -95,15 +101,31 @@ def summarize(cols: dict) -> dict:
             pair[metric] = {
                 "wins": k,
                 "n": n,
-                "win_rate": k / n if n else math.nan,
-                "ci95": list(wilson_interval(k, n)),
+                "win_rate": k / n if n else None,
+                "ci95": list(wilson_interval(k, n)) if n else None,
             }
         out["paired"][f"{name}_over_{baseline}"] = pair
     return out
 
 
-def _fmt(x: float) -> str:
-    return "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4g}"
+def _strict(x):
+    """``x`` with every non-finite float replaced by None (JSON ``null``)."""
+    if isinstance(x, dict):
+        return {k: _strict(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_strict(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def summary_json(summary: dict) -> str:
+    """summary.json text: strict JSON (undefined numbers are ``null``, never ``NaN``)."""
+    return json.dumps(_strict(summary), indent=2, allow_nan=False) + "\n"
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.4g}"
 
 
 def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]]:
@@ -113,14 +135,11 @@ def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]
         rows = []
         for name, e in summary["controllers"].items():
             s = e[metric]
-            rows.append(
-                [
-                    name,
-                    *(_fmt(s[f"p{q}"]) for q in PERCENTILES),
-                    _fmt(s["max"]),
-                    str(e["excluded_from_ise"]),
-                ]
-            )
+            if s["max"] is None:
+                stats = [NO_OK_RUNS] + ["-"] * len(PERCENTILES)
+            else:
+                stats = [*(_fmt(s[f"p{q}"]) for q in PERCENTILES), _fmt(s["max"])]
+            rows.append([name, *stats, str(e["excluded_from_ise"])])
         tables.append(
             (
                 f"{metric} [{unit}] over ok runs",
@@ -161,6 +180,9 @@ def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]
     rows = []
     for pair, per in summary["paired"].items():
         for metric, w in per.items():
+            if not w["n"]:
+                rows.append([pair, metric, "0/0", "no case with a successful run", "-"])
+                continue
             lo, hi = w["ci95"]
             rows.append(
                 [
@@ -182,12 +204,19 @@ def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]
     return tables
 
 
+def _no_ok_runs(summary: dict) -> list[str]:
+    return [n for n, e in summary["controllers"].items() if e["status_counts"]["ok"] == 0]
+
+
 def format_summary(summary: dict) -> str:
     """Plain-text summary for the terminal."""
     lines = [
         f"Monte-Carlo summary: {summary['n_cases']} cases x "
         f"{len(summary['controllers'])} controllers"
     ]
+    failed = _no_ok_runs(summary)
+    if failed:
+        lines.append(f"{', '.join(failed)}: {NO_OK_RUNS} (every run diverged or failed)")
     for title, header, rows in summary_tables(summary):
         widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
         lines += ["", title]
@@ -236,6 +265,7 @@ def replay_worst(
                 n_save=801,
                 max_steps=settings.max_steps,
                 unmodeled=batch.unmodeled_case(0),
+                aerodynamics=batch.aerodynamics,
             )
             for name, ctrl in controllers.items()
         }
@@ -277,27 +307,38 @@ def write_report(
 ) -> dict[str, Path]:
     """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html."""
     out = Path(out)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(summary_json(summary), out / "summary.json")
     figs: list[tuple[str, str, bytes]] = []
+    any_ok = bool(np.any(np.asarray(cols["status"]) == "ok"))
     if figures:
         fig_dir = out / "figures"
         fig_dir.mkdir(exist_ok=True)
         makers = [
-            ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols)),
             ("heatmap_payload_gust", "payload x gust amplitude", lambda: figure_heatmaps(cols)),
-            ("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)),
         ]
+        if any_ok:  # the ISE figures show ok runs only
+            makers[:0] = [
+                ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols))
+            ]
+            makers.append(("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)))
         if replays:
             makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
         for stem, title, make in makers:
             data = _png(make())
-            (fig_dir / f"{stem}.png").write_bytes(data)
+            atomic_write_bytes(data, fig_dir / f"{stem}.png")
             figs.append((stem, title, data))
     cfg = meta.get("config", {})
+    failed = _no_ok_runs(summary)
     intro = (
         f"{summary['n_cases']} cases, controllers {', '.join(summary['controllers'])}, "
         f"seed {cfg.get('seed')}, git {meta.get('git_revision')}. Turbulence levels: "
         f"{', '.join(f'{i} = {n}' for i, n in enumerate(TURBULENCE_INTENSITIES))}."
+        + (
+            f" {', '.join(failed)}: {NO_OK_RUNS} (every run diverged or failed)"
+            + ("; no ISE figures." if not any_ok else ".")
+            if failed
+            else ""
+        )
     )
     md = ["# Monte-Carlo robustness report", "", intro, ""]
     hp = [
@@ -328,6 +369,6 @@ def write_report(
         f"<pre>{html.escape(json.dumps(meta, indent=2))}</pre>",
         "</body></html>",
     ]
-    (out / "report.md").write_text("\n".join(md))
-    (out / "report.html").write_text("\n".join(hp))
+    atomic_write_text("\n".join(md), out / "report.md")
+    atomic_write_text("\n".join(hp), out / "report.html")
     return {"md": out / "report.md", "html": out / "report.html", "summary": out / "summary.json"}

@@ -1,7 +1,9 @@
 """The Monte-Carlo runner: chunked, resumable, paired over controllers, optionally sharded.
 
-For every chunk of ``chunk_size`` cases (the last one filled with the following case indices,
-so every chunk has the same shape and nothing recompiles) and every controller, a *strategy*
+For every chunk of ``chunk_size`` cases (the last one filled up with the following case
+indices, results dropped, so every chunk has the same shape; a run of one chunk is simulated at
+the smallest of a few fixed sizes that holds its cases, `simulated_size`) and every controller,
+a *strategy*
 maps ``(controller, chunk, settings, devices) -> per-case metrics`` (`METRIC_NAMES`). Built in
 (`afbl_jax.simulate_batch` underneath, case axis split over ``devices``; every strategy runs
 every closed loop, including the distribution's ``[unmodeled]`` section):
@@ -30,8 +32,10 @@ Other strategies can be added with `register_strategy`. Metric definitions:
 
 from __future__ import annotations
 
+import datetime
 import json
-import shutil
+import os
+import socket
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -39,12 +43,28 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ...io import atomic_write_table, gains_to_dict, read_table
+from ..._validation import check_seed
+from ...io import (
+    FileLock,
+    atomic_write_bytes,
+    atomic_write_table,
+    atomic_write_text,
+    gains_to_dict,
+    git_revision,
+    read_table,
+)
 from ...metrics import METRIC_NAMES, metric_columns
 from ...model import AbstractController
 from ...sim import STATUS_NAMES, simulate_batch
 from ._distribution import Distribution
-from ._sampler import GROUP_SIZE, CaseBatch, sample_cases
+from ._sampler import (
+    GROUP_SIZE,
+    INPUT_COLUMNS,
+    MAX_CASE_INDEX,
+    UNMODELED_COLUMNS,
+    CaseBatch,
+    sample_cases,
+)
 
 RESULTS_FILE = "results.parquet"
 
@@ -79,8 +99,13 @@ class SolverSettings:
         )
 
     def __post_init__(self):
-        if not ((self.rtol is None or self.rtol > 0) and (self.atol is None or self.atol > 0)):
-            raise ValueError(f"rtol and atol must be > 0, got {self.rtol}, {self.atol}.")
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if value is not None and not (0 < value < float("inf")):
+                raise ValueError(
+                    f"{name} must be a finite number > 0 (or None: the strategy's default), "
+                    f"got {value}."
+                )
         if int(self.n_save) < 2 or int(self.max_steps) < 1:
             raise ValueError(
                 f"n_save must be >= 2 and max_steps >= 1, got {self.n_save}, {self.max_steps}."
@@ -116,6 +141,7 @@ def _batch_strategy(name: str) -> Strategy:
             chunk.vehicle,
             chunk.model,
             unmodeled=chunk.unmodeled,
+            aerodynamics=chunk.aerodynamics,
             solver=settings.solver,
             rtol=settings.rtol,
             atol=settings.atol,
@@ -223,14 +249,181 @@ class MonteCarloConfig:
         return asdict(self)
 
 
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """Dotted names of the entries in which two configurations (nested dicts) differ."""
+    out = []
+    for key in sorted(set(a) | set(b), key=str):
+        va, vb = a.get(key, _MISSING), b.get(key, _MISSING)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_differences(va, vb, f"{prefix}{key}.")
+        elif va != vb:
+            out.append(f"{prefix}{key}")
+    return out
+
+
+_MISSING = object()
+
+
 def chunk_file(chunk_dir: Path, c: int) -> Path:
     """Path of chunk ``c``'s results (global chunk numbering, the same on every host)."""
     return chunk_dir / f"chunk_{c:06d}.parquet"
 
 
+def _chunk_lock(chunk_dir: Path, c: int) -> FileLock:
+    """Lock of chunk ``c``: held by the run computing it (so runs sharing a folder split the
+    chunks between them); removed once the chunk file exists."""
+    return FileLock(chunk_dir / f".chunk_{c:06d}.lock")
+
+
+FOLDER_LOCK = ".lock"
+"""Lock file in a results folder, held while run.json, the invocation log or the report is
+written."""
+
+
 def host_chunks(n_chunks: int, host_index: int, host_count: int) -> range:
     """The chunks host ``host_index`` of ``host_count`` runs: c = host_index (mod host_count)."""
     return range(int(host_index), int(n_chunks), int(host_count))
+
+
+def chunk_ladder(chunk_size: int, unit: int) -> tuple[int, ...]:
+    """The sizes a chunk may be simulated at: ``unit``, 2 ``unit``, 4 ``unit``, ... (below
+    ``chunk_size``) and ``chunk_size``. A few fixed sizes, so runs of any length reuse the same
+    compiled programs; ``unit`` (devices x `GROUP_SIZE`) keeps the ensemble groups whole."""
+    sizes, s = [], int(unit)
+    while s < chunk_size:
+        sizes.append(s)
+        s *= 2
+    return (*sizes, int(chunk_size))
+
+
+def simulated_size(n_valid: int, chunk_size: int, unit: int, n_chunks: int) -> int:
+    """Cases simulated for a chunk holding ``n_valid`` cases (its cases first, then the
+    following case indices as padding, dropped).
+
+    A run of one chunk (``n_chunks`` 1) takes the smallest size of `chunk_ladder` that holds
+    its cases (``--cases 1`` simulates one group per device, not a whole chunk). In a longer run
+    every chunk, the last one too, is simulated at ``chunk_size``: a second compiled size would
+    cost more than the padding (measured on 2 CPU cores, AFBL, default strategy: ~7-8 s to
+    compile each size, 1.7 s to simulate a 256-case chunk). Depends on the configuration only,
+    so resumed and multi-host runs simulate the same chunks."""
+    if n_chunks > 1:
+        return int(chunk_size)
+    return next(s for s in chunk_ladder(chunk_size, unit) if s >= n_valid)
+
+
+def results_bytes_per_case(n_controllers: int, distribution: Distribution) -> int:
+    """A lower bound of the memory one case's rows take in the results table [bytes]: 8 per
+    number (case index, inputs, metrics) and per row the two labels' offsets and characters."""
+    inputs = len(INPUT_COLUMNS) + (
+        len(UNMODELED_COLUMNS) if distribution.spec["unmodeled"]["enabled"] else 0
+    )
+    numbers = 1 + inputs + len(METRIC_NAMES) - 1  # case + inputs + metrics but status
+    labels = 2 * 4 + len("fbl") + len("ok")  # controller and status: offsets + shortest text
+    return n_controllers * (8 * numbers + labels)
+
+
+def physical_memory() -> int | None:
+    """This machine's physical memory [bytes] (None where the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _human(n_bytes: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if n_bytes < 1000 or unit == "PB":
+            return f"{n_bytes:.3g} {unit}"
+        n_bytes /= 1000
+    raise AssertionError  # unreachable
+
+
+def check_results_fit(
+    n_cases: int,
+    n_controllers: int,
+    distribution: Distribution,
+    host_count: int = 1,
+    memory: int | None = None,
+) -> None:
+    """Raise ValueError when the results table of ``n_cases`` (this host's share of
+    ``host_count``) cannot fit in ``memory`` (default: this machine's physical memory): the run
+    holds its table in memory at the end, so a run that cannot fit is refused before it starts
+    instead of failing after hours."""
+    memory = physical_memory() if memory is None else int(memory)
+    if memory is None:
+        return
+    per_case = results_bytes_per_case(n_controllers, distribution)
+    share = -(-int(n_cases) // int(host_count))
+    if share * per_case > memory:
+        fit = memory // per_case * int(host_count)
+        hosts = f" on each of {host_count} hosts" if host_count > 1 else ""
+        raise ValueError(
+            f"{n_cases} cases x {n_controllers} controller(s) need at least "
+            f"{_human(share * per_case)} of memory for the results table{hosts}, more than this "
+            f"machine's {_human(memory)}; at most {fit} cases fit."
+        )
+
+
+def read_invocations(out: str | Path) -> list[dict]:
+    """The invocations of a results folder (``invocations.jsonl``), one dict per invocation:
+    its start record with its finish record merged in (``chunks_computed``: chunks this
+    invocation simulated; absent if it was interrupted)."""
+    log = Path(out) / "invocations.jsonl"
+    if not log.exists():
+        return []
+    entries: list[dict] = []
+    by_id: dict = {}
+    for line in log.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line cut short by a crash: provenance only, skip it
+        key = record.get("invocation")
+        if key is not None and key in by_id and "finished_utc" in record:
+            by_id[key].update(record)
+        elif "finished_utc" not in record:
+            entries.append(record)
+            if key is not None:
+                by_id[key] = record
+    return entries
+
+
+def _log_invocation(out: Path, record: dict) -> None:
+    with open(out / "invocations.jsonl", "a") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def _damaged(path: Path, why: str, fix: str) -> ValueError:
+    return ValueError(
+        f"{path} is damaged ({why}); it was probably cut short or overwritten: delete it and {fix}."
+    )
+
+
+def _check_chunk(path: Path, rows: int, fix: str) -> None:
+    """Refuse a chunk file that is not complete parquet or has the wrong number of rows."""
+    import pyarrow.parquet as pq
+
+    try:
+        found = pq.read_metadata(path).num_rows
+    except Exception as err:  # pyarrow raises ArrowInvalid or a bare OSError for bad footers
+        if isinstance(err, OSError) and err.errno is not None:
+            raise
+        raise _damaged(path, f"not a complete parquet file: {err}", fix) from None
+    if found != rows:
+        raise _damaged(path, f"{found} rows instead of {rows}", fix)
+
+
+def _read_chunk(path: Path, rows: int, fix: str):
+    """A finished chunk file, refused (saying what to do) when it is not complete parquet or
+    does not hold ``rows`` rows."""
+    _check_chunk(path, rows, fix)
+    try:
+        return read_table(path)
+    except ValueError as err:
+        raise _damaged(path, str(err), fix) from None
+
+
+RERUN = "re-run the same command (that chunk is recomputed)"
 
 
 def run_montecarlo(
@@ -254,11 +447,19 @@ def run_montecarlo(
     (`METRIC_NAMES`, status as "ok"/"diverged"/"solver_failed"). With ``out``, each finished
     chunk is written to ``out/chunks/`` at once; running the same call again skips finished
     chunks (resume) and the final ``out/results.parquet`` equals an uninterrupted run's. A
-    different configuration in an existing ``out`` raises instead of mixing runs.
+    different configuration in an existing ``out`` raises (naming the differing entries)
+    instead of mixing runs; so do chunk files that were cut short (with what to do).
+
+    Several processes may run the same call into one ``out`` at once: each chunk is computed by
+    the first process that locks it (`FileLock`), the others take its file, and every process
+    ends with the same ``results.parquet``. Every invocation is logged in
+    ``out/invocations.jsonl`` (`read_invocations`), with the chunks it computed.
 
     ``strategy``: a name of `STRATEGIES`, or None/"auto" (`resolve_strategy`). Ensemble
     groups are consecutive blocks of `GROUP_SIZE` case indices, so with chunk sizes that are
-    multiples of `GROUP_SIZE` the numbers do not depend on the chunk size.
+    multiples of `GROUP_SIZE` the numbers do not depend on the chunk size. A run of a single
+    chunk is simulated at the smallest size of `chunk_ladder` that holds its cases
+    (`simulated_size`); the progress bar counts the run's own cases, never the padding.
 
     ``shard``: split each chunk's case axis over all local JAX devices (default: when there are
     several); ``chunk_size`` is then rounded up to a multiple of devices x `GROUP_SIZE`.
@@ -266,6 +467,9 @@ def run_montecarlo(
     Several hosts: ``host_index`` i of ``host_count`` P runs only the chunks c = i (mod P)
     (`host_chunks`) and returns / writes only their rows; `merge_results` joins the hosts'
     ``out`` folders into the table of a one-host run.
+
+    Refused before anything is written (ValueError): a results table that cannot fit in this
+    machine's memory (`check_results_fit`), seeds outside [0, 2^63 - 1].
     """
     if not controllers:
         raise ValueError("run_montecarlo needs at least one controller.")
@@ -278,19 +482,23 @@ def run_montecarlo(
             f"need 0 <= host_index < host_count, got host_index {host_index}, "
             f"host_count {host_count}."
         )
+    if int(n_cases) - 1 > MAX_CASE_INDEX:
+        raise ValueError(f"n_cases must be <= 2^63, got {n_cases}.")
+    seed = check_seed(seed)
+    check_results_fit(int(n_cases), len(controllers), distribution, int(host_count))
     strategy = resolve_strategy(strategy, distribution)
     settings = (settings or SolverSettings()).with_tolerances_for(strategy)
     n_dev = len(jax.local_devices())
     shard = n_dev > 1 if shard is None else bool(shard)
     chunk_size = int(chunk_size)
+    unit = GROUP_SIZE * (n_dev if shard else 1)
     if shard:
         # every device gets whole groups of consecutive cases: the ensemble groups (and so the
         # numbers) are the same as on one device
-        unit = n_dev * GROUP_SIZE
         chunk_size = -(-chunk_size // unit) * unit
     config = MonteCarloConfig(
         int(n_cases),
-        int(seed),
+        seed,
         {n: gains_to_dict(c) for n, c in controllers.items()},
         distribution.to_dict(),
         chunk_size,
@@ -298,69 +506,153 @@ def run_montecarlo(
         asdict(settings),
         [int(host_index), int(host_count)],
     )
+    n_chunks = -(-int(n_cases) // chunk_size)
+    mine = host_chunks(n_chunks, host_index, host_count)
+
+    def valid(c: int) -> int:
+        return min(chunk_size, int(n_cases) - c * chunk_size)
+
+    n_mine = len(mine) * chunk_size  # this host's real cases (the last chunk may be short)
+    if len(mine) and mine[-1] == n_chunks - 1:
+        n_mine -= chunk_size - valid(n_chunks - 1)
     chunk_dir = None
+    invocation = None
     if out is not None:
         out = Path(out)
         chunk_dir = out / "chunks"
-        run_file = out / "run.json"
         text = json.dumps(config.to_dict(), indent=2, sort_keys=True)
-        if run_file.exists():
-            if run_file.read_text() != text:
-                raise ValueError(
-                    f"{out} holds results of a different configuration ({run_file}); use "
-                    "another --out folder or delete it."
-                )
+        _check_same_config(out, json.loads(text))  # before writing anything
         chunk_dir.mkdir(parents=True, exist_ok=True)
-        run_file.write_text(text)
-    n_chunks = -(-int(n_cases) // chunk_size)
-    mine = host_chunks(n_chunks, host_index, host_count)
-    if out is not None:
-        # provenance of every invocation (a resumed run may span several code revisions)
-        import datetime as _dt
-
-        from ...io import git_revision
-
-        done = sum(chunk_file(chunk_dir, c).exists() for c in mine)
-        entry = {
-            "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "git_revision": git_revision(),
-            "chunks_already_done": int(done),
-            "n_chunks": len(mine),
-            "host": [int(host_index), int(host_count)],
-            "devices": [str(d) for d in local_devices(shard)],
-        }
-        with open(out / "invocations.jsonl", "a") as fh:
-            fh.write(json.dumps(entry) + "\n")
-    tables = []
+        # which of this host's chunks are done: one directory listing, not one look-up per chunk
+        # (they are read, and checked, in the loop below, under the progress bar)
+        done = [c for c in _listed_chunks(chunk_dir) if c in mine]
+        now = _now()
+        invocation = f"{socket.gethostname()}:{os.getpid()}:{now}"
+        with FileLock(out / FOLDER_LOCK):
+            _check_same_config(out, json.loads(text))  # again, now that no one else writes
+            if not (out / "run.json").exists():
+                atomic_write_text(text, out / "run.json")
+            # provenance of every invocation (a resumed run may span several code revisions)
+            _log_invocation(
+                out,
+                {
+                    "invocation": invocation,
+                    "started_utc": now,
+                    "git_revision": git_revision(),
+                    "chunks_already_done": len(done),
+                    "n_chunks": len(mine),
+                    "host": [int(host_index), int(host_count)],
+                    "devices": [str(d) for d in local_devices(shard)],
+                },
+            )
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(mine) * chunk_size, unit="case", desc="monte carlo")
-    for c in mine:
+        bar = tqdm(total=n_mine, unit="case", desc="monte carlo")
+
+    def compute(c: int):
         start = c * chunk_size
-        n_valid = min(chunk_size, int(n_cases) - start)
-        path = chunk_file(chunk_dir, c) if chunk_dir is not None else None
-        if path is not None and path.exists():
-            tables.append(read_table(path))
+        chunk = sample_cases(
+            distribution, simulated_size(valid(c), chunk_size, unit, n_chunks), seed, start=start
+        )
+        per = {
+            name: run_chunk(ctrl, chunk, strategy=strategy, settings=settings, shard=shard)
+            for name, ctrl in controllers.items()
+        }
+        return _chunk_table(chunk, valid(c), per)
+
+    tables: dict[int, object] = {}
+    computed = 0
+
+    def claimed(c: int, lock: FileLock):
+        """Chunk c with its lock held: read it if another run finished it, else compute it."""
+        nonlocal computed
+        path = chunk_file(chunk_dir, c)
+        try:
+            if path.exists():
+                return _read_chunk(path, valid(c) * len(controllers), RERUN)
+            table = compute(c)
+            atomic_write_table(table, path)
+            computed += 1
+            return table
+        finally:
+            lock.release(unlink=path.exists())
+
+    pending = []
+    for c in mine:
+        if chunk_dir is None:
+            tables[c] = compute(c)
+            computed += 1
+        elif chunk_file(chunk_dir, c).exists():
+            tables[c] = _read_chunk(chunk_file(chunk_dir, c), valid(c) * len(controllers), RERUN)
         else:
-            chunk = sample_cases(distribution, chunk_size, seed, start=start)
-            per = {
-                name: run_chunk(ctrl, chunk, strategy=strategy, settings=settings, shard=shard)
-                for name, ctrl in controllers.items()
-            }
-            table = _chunk_table(chunk, n_valid, per)
-            if path is not None:
-                atomic_write_table(table, path)
-            tables.append(table)
+            lock = _chunk_lock(chunk_dir, c)
+            if not lock.acquire(blocking=False):
+                pending.append(c)  # another run in this folder is computing it
+                continue
+            tables[c] = claimed(c, lock)
         if bar is not None:
-            bar.update(chunk_size)
+            bar.update(valid(c))
+    for c in pending:
+        if bar is not None:
+            bar.set_postfix_str(f"waiting for chunk {c} (another run in this folder)")
+        lock = _chunk_lock(chunk_dir, c)
+        lock.acquire()
+        tables[c] = claimed(c, lock)
+        if bar is not None:
+            bar.update(valid(c))
     if bar is not None:
+        bar.set_postfix_str("")
         bar.close()
-    result = _concat(tables)
+    result = _concat([tables[c] for c in mine])
     if out is not None:
         atomic_write_table(result, out / RESULTS_FILE)
+        with FileLock(out / FOLDER_LOCK):
+            _log_invocation(
+                out,
+                {
+                    "invocation": invocation,
+                    "finished_utc": _now(),
+                    "chunks_computed": computed,
+                },
+            )
     return result
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
+def _listed_chunks(chunk_dir: Path) -> list[int]:
+    """Chunk numbers of the finished chunk files in ``chunk_dir``."""
+    found = []
+    for name in os.listdir(chunk_dir):
+        if name.startswith("chunk_") and name.endswith(".parquet"):
+            try:
+                found.append(int(name[len("chunk_") : -len(".parquet")]))
+            except ValueError:
+                continue
+    return sorted(found)
+
+
+def _check_same_config(out: Path, config: dict) -> None:
+    """Refuse a folder holding results of another configuration (naming what differs)."""
+    run_file = out / "run.json"
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out} is a file, not a folder; give a folder for the results.")
+    if not run_file.exists():
+        return
+    try:
+        found = json.loads(run_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise _damaged(run_file, "not JSON", "the chunks beside it, or use another folder")
+    diff = config_differences(found, config) if isinstance(found, dict) else ["run.json"]
+    if diff:
+        raise ValueError(
+            f"{out} holds results of a different configuration (differs in: "
+            f"{', '.join(diff)}; see {run_file}); use another --out folder or delete it."
+        )
 
 
 def _concat(tables):
@@ -373,7 +665,8 @@ def merge_results(shards: list[str | Path], out: str | Path) -> tuple:
     """Join the ``out`` folders of a multi-host run (one per host, same configuration, hosts
     0..P-1) into ``out/results.parquet`` (rows in case order, equal to a one-host run's) and
     ``out/run.json``; returns (table, config). Raises ValueError, naming the folder, when a
-    configuration differs, a host is missing or twice, or a chunk file is missing."""
+    configuration differs (naming the differing entries), a host is missing or twice, or a
+    chunk file is missing or damaged."""
     if not shards:
         raise ValueError("merge needs at least one results folder.")
     configs = {}
@@ -381,16 +674,17 @@ def merge_results(shards: list[str | Path], out: str | Path) -> tuple:
         run_file = d / "run.json"
         if not run_file.exists():
             raise ValueError(f"{d} is not a Monte-Carlo results folder (no run.json).")
-        configs[d] = json.loads(run_file.read_text())
+        try:
+            configs[d] = json.loads(run_file.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            raise ValueError(f"{run_file} is damaged (not JSON).") from None
     first_dir, first = next(iter(configs.items()))
     count = int(first["hosts"][1])
     base = {k: v for k, v in first.items() if k != "hosts"}
     seen: dict[int, Path] = {}
     for d, cfg in configs.items():
-        if {k: v for k, v in cfg.items() if k != "hosts"} != base:
-            diff = sorted(
-                k for k in set(cfg) | set(base) if k != "hosts" and cfg.get(k) != base.get(k)
-            )
+        diff = config_differences({k: v for k, v in cfg.items() if k != "hosts"}, base)
+        if diff:
             raise ValueError(
                 f"{d} was run with a different configuration than {first_dir} "
                 f"(differs in: {', '.join(diff)})."
@@ -404,29 +698,36 @@ def merge_results(shards: list[str | Path], out: str | Path) -> tuple:
     missing = sorted(set(range(count)) - set(seen))
     if missing:
         raise ValueError(f"results of host(s) {missing} of {count} are missing.")
-    n_chunks = -(-int(base["n_cases"]) // int(base["chunk_size"]))
+    n_cases, chunk_size = int(base["n_cases"]), int(base["chunk_size"])
+    n_chunks = -(-n_cases // chunk_size)
     paths = [chunk_file(seen[c % count] / "chunks", c) for c in range(n_chunks)]
+    n_controllers = len(base["controllers"])
     for c, path in enumerate(paths):
+        fix = f"re-run host {c % count}'s command (that chunk is recomputed), then merge again"
         if not path.exists():
             raise ValueError(
                 f"{path} is missing: host {c % count} has not finished (re-run "
                 "its command to resume it)."
             )
+        _check_chunk(path, min(chunk_size, n_cases - c * chunk_size) * n_controllers, fix)
     out = Path(out)
     (out / "chunks").mkdir(parents=True, exist_ok=True)
     tables = []
-    for c, path in enumerate(paths):
-        # the merged folder is a complete one-host run folder (resumable like any other)
-        if path.resolve() != chunk_file(out / "chunks", c).resolve():
-            shutil.copy2(path, chunk_file(out / "chunks", c))
-        tables.append(read_table(path))
-    table = _concat(tables)
-    config = {**base, "hosts": [0, 1]}
-    (out / "run.json").write_text(json.dumps(config, indent=2, sort_keys=True))
-    with open(out / "invocations.jsonl", "w") as fh:
+    with FileLock(out / FOLDER_LOCK):
+        for c, path in enumerate(paths):
+            # the merged folder is a complete one-host run folder (resumable like any other)
+            target = chunk_file(out / "chunks", c)
+            if path.resolve() != target.resolve():
+                atomic_write_bytes(path.read_bytes(), target)
+            tables.append(read_table(path))
+        table = _concat(tables)
+        config = {**base, "hosts": [0, 1]}
+        atomic_write_text(json.dumps(config, indent=2, sort_keys=True), out / "run.json")
+        lines = []
         for index in sorted(seen):
             log = seen[index] / "invocations.jsonl"
             if log.exists():
-                fh.write(log.read_text())
-    atomic_write_table(table, out / RESULTS_FILE)
+                lines.append(log.read_text())
+        atomic_write_text("".join(lines), out / "invocations.jsonl")
+        atomic_write_table(table, out / RESULTS_FILE)
     return table, config

@@ -1,7 +1,9 @@
 """Sampling Monte-Carlo cases from a `Distribution`.
 
-Case i is drawn from its own key ``fold_in(PRNGKey(seed), i)``, so a case never depends on how
-many cases are drawn with it or on how they are chunked. One exception, so that the cases of an
+Case i is drawn from its own key (`case_keys`: ``fold_in(PRNGKey(seed), i)`` for i < 2^32, and
+``fold_in(fold_in(PRNGKey(seed), i mod 2^32), i // 2^32)`` above, so every index up to
+`MAX_CASE_INDEX` has its own key), so a case never depends on how many cases are drawn with it
+or on how they are chunked. One exception, so that the cases of an
 ensemble group can share their control sample instants: with ``[unmodeled]`` digital control,
 the control rate of case i is the one drawn for case ``GROUP_SIZE * (i // GROUP_SIZE)`` (the
 first case of its group of `GROUP_SIZE` consecutive indices). Every case still gets a rate from
@@ -19,16 +21,30 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._typing import Array
-from ...model import QuadrotorParams, UnmodeledDynamics
+from ..._validation import check_seed
+from ...model import (
+    AERO_COEFFICIENTS,
+    AbstractAerodynamics,
+    LinearDrag,
+    QuadrotorParams,
+    UnmodeledDynamics,
+    make_aerodynamics,
+)
 from ...scenario import (
     TURBULENCE_INTENSITIES,
     PulseDisturbance,
     Reference,
     Scenario,
     Wind,
-    dryden_amplitudes,
+    dryden_band_amplitudes,
+    dryden_low_altitude,
+    gust_magnitude,
+    mean_wind_speed,
+    mean_wind_velocity,
     paper_reference,
+    turbulence_edges,
     turbulence_grid,
+    w20,
 )
 from ._distribution import Distribution
 
@@ -45,6 +61,8 @@ INPUT_COLUMNS: tuple[str, ...] = (
     "thrust_to_weight",
     "drag_coefficient",
     "cp_offset",
+    *AERO_COEFFICIENTS,
+    "hub_height",
     "pulse_torque_phi",
     "pulse_torque_theta",
     "pulse_torque_psi",
@@ -61,8 +79,17 @@ INPUT_COLUMNS: tuple[str, ...] = (
     "gust_buildup_y",
     "gust_buildup_z",
     "gust_start",
+    "gust_sigma_multiple",
+    "mean_wind_speed",
+    "mean_wind_direction",
     "turbulence_level",
+    "turbulence_airspeed",
+    "turbulence_sigma_u",
+    "turbulence_sigma_v",
     "turbulence_sigma_w",
+    "turbulence_rms_u",
+    "turbulence_rms_v",
+    "turbulence_rms_w",
     "initial_phi",
     "initial_theta",
     "initial_psi",
@@ -72,8 +99,18 @@ INPUT_COLUMNS: tuple[str, ...] = (
     "profile",
 )
 """Sampled inputs recorded per case (SI units, rad). ``turbulence_level`` indexes
-`afbl_jax._wind.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine;
-``gust_speed`` = |gust amplitude vector| [m/s]; ``turbulence_sigma_w`` the vertical RMS [m/s]."""
+`afbl_jax.scenario.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine.
+Wind: ``mean_wind_speed`` [m/s] at the altitude and ``mean_wind_direction`` [rad] (azimuth the
+air moves towards, from earth x towards y; 0 speed when ``[mean_wind]`` is off);
+``turbulence_airspeed`` [m/s] carries the frozen Dryden field; ``turbulence_sigma_u/v/w`` are
+the standard's intensities sigma [m/s] and ``turbulence_rms_u/v/w`` the RMS the sum of sinusoids
+realises (the band [omega_min, omega_max] leaves out the rest of sigma^2); u, v, w are along the
+mean wind, across it and vertical. ``gust_amplitude_x/y/z`` [m/s] are the gust's earth-frame
+components after build-up (``gust_buildup_x/y/z`` [s] are the build-up times of its u, v, w
+components), ``gust_speed`` = |gust amplitude vector| [m/s], ``gust_sigma_multiple`` the
+standard deviations of the tied magnitude (NaN with independent magnitudes). The aerodynamic
+coefficients are those of `afbl_jax.QuadrotorParams` (the ones the case's model does not use
+are drawn and recorded all the same)."""
 PROFILE_NAMES = ("step", "sine")
 UNMODELED_COLUMNS: tuple[str, ...] = (
     "motor_tau",
@@ -88,7 +125,10 @@ UNMODELED_COLUMNS: tuple[str, ...] = (
 the case's `afbl_jax.UnmodeledDynamics` numbers (``motor_tau`` [s], ``control_rate`` [Hz],
 0 = continuous controller, ``delay_samples`` [samples], noise standard deviations [rad],
 [rad/s], [m], [m/s])."""
+MAX_CASE_INDEX = 2**63 - 1
+"""Largest case index (int64 case column); `case_keys` gives every index its own key."""
 _UNMODELED_STREAM = 0x554E4D44  # fold_in constant of the per-case unmodeled key ("UNMD")
+_WIND_STREAM = 0x57494E44  # fold_in constant of the per-case mean-wind/aero key ("WIND")
 
 
 class CaseBatch(eqx.Module):
@@ -103,6 +143,8 @@ class CaseBatch(eqx.Module):
         index: global case index of each row, shape (n,).
         unmodeled: batched `afbl_jax.UnmodeledDynamics` (leading axis = case; static fields
             shared), or None for the paper's closed loop.
+        aerodynamics: the aerodynamic model of every case (static; its coefficients are in
+            ``vehicle``), from the distribution's ``aero.model``.
     """
 
     scenario: Scenario
@@ -111,6 +153,7 @@ class CaseBatch(eqx.Module):
     inputs: dict[str, Array]
     index: Array
     unmodeled: UnmodeledDynamics | None = None
+    aerodynamics: AbstractAerodynamics = eqx.field(default_factory=LinearDrag)
 
     @property
     def input_columns(self) -> tuple[str, ...]:
@@ -129,7 +172,7 @@ class CaseBatch(eqx.Module):
         """The cases at positions ``indices`` (an int array or a slice) of this batch."""
         if isinstance(indices, slice):
             indices = np.arange(self.n_cases)[indices]
-        idx = jnp.asarray(indices)
+        idx = np.asarray(indices)
         pick = lambda x: x[idx]  # noqa: E731
         model = jax.tree.map(pick, self.model) if self.model_batched else self.model
         unmodeled = None if self.unmodeled is None else jax.tree.map(pick, self.unmodeled)
@@ -140,6 +183,7 @@ class CaseBatch(eqx.Module):
             {k: v[idx] for k, v in self.inputs.items()},
             self.index[idx],
             unmodeled,
+            self.aerodynamics,
         )
 
     def __getitem__(self, indices) -> CaseBatch:
@@ -168,10 +212,19 @@ def _categorical(key, probs: dict, names) -> Array:
     return jax.random.choice(key, len(names), p=jnp.asarray(p / p.sum()))
 
 
-def _sample_one(key, spec: dict, amp_table, omega, references):
+def _rotate_horizontal(vectors, direction):
+    """Rows (u, v, w) of ``vectors`` (3, ...) along/across the mean wind -> earth (x, y, z)."""
+    c, s = jnp.cos(direction), jnp.sin(direction)
+    rot = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return jnp.tensordot(rot, vectors, axes=1)
+
+
+def _sample_one(key, spec: dict, tables, edges, omega, references):
     k = iter(jax.random.split(key, 24))
+    kw = iter(jax.random.split(jax.random.fold_in(key, _WIND_STREAM), 10))
     pay, err, aero = spec["payload"], spec["model_error"], spec["aero"]
     pul, gust, turb, ini = spec["pulses"], spec["gust"], spec["turbulence"], spec["initial"]
+    mean = spec["mean_wind"]
     inputs = {}
     inputs["payload_fraction"] = _uniform(next(k), pay["fraction"])
     inputs["payload_time"] = _uniform(next(k), pay["attach_time"])
@@ -184,6 +237,8 @@ def _sample_one(key, spec: dict, amp_table, omega, references):
         inputs[name] = _uniform(next(k), err[name])
     inputs["drag_coefficient"] = _uniform(next(k), aero["drag_coefficient"])
     inputs["cp_offset"] = _uniform(next(k), aero["cp_offset"])
+    for name in (*AERO_COEFFICIENTS, "hub_height"):
+        inputs[name] = _uniform(next(kw), aero[name])
 
     on = 1.0 if pul["enabled"] else 0.0
     torque = on * _uniform(next(k), pul["torque"], (3,))
@@ -203,32 +258,75 @@ def _sample_one(key, spec: dict, amp_table, omega, references):
         jnp.stack([zero3, jnp.array([0.0, 0.0, 1.0]) * force_z]),
     )
 
+    # turbulence level, its standard's intensities and the wind that carries it
+    sigma_table, scale_table, w20_table = tables
+    k_mag, k_vert, k_sign, k_build, k_start = (next(k) for _ in range(5))
+    if turb["enabled"]:
+        level = _categorical(next(k), turb["intensity_probabilities"], TURBULENCE_INTENSITIES)
+    else:
+        level = jnp.asarray(0)
+    k_phase = next(k)
+    sigma, scale = jnp.asarray(sigma_table)[level], jnp.asarray(scale_table)[level]
+    if mean["source"] == "w20":
+        speed = mean_wind_speed(jnp.asarray(w20_table)[level], turb["altitude"])
+    else:
+        speed = _uniform(next(kw), mean["speed"])
+    direction = _uniform(next(kw), mean["direction"])
+    airspeed = speed if turb["airspeed"] == 0 else jnp.asarray(float(turb["airspeed"]))
+    inputs["mean_wind_speed"] = speed if mean["enabled"] else jnp.zeros_like(speed)
+    inputs["mean_wind_direction"] = direction
+    inputs["turbulence_level"] = level
+    inputs["turbulence_airspeed"] = airspeed
+
+    # one 1-cosine gust: components u, v, w along the mean wind, each with its build-up time
     g_on = 1.0 if gust["enabled"] else 0.0
-    mag = jnp.concatenate(
-        [
-            _uniform(next(k), gust["horizontal_amplitude"], (2,)),
-            _uniform(next(k), gust["vertical_amplitude"], (1,)),
-        ]
-    )
-    sign = jnp.where(jax.random.bernoulli(next(k), 0.5, (3,)), 1.0, -1.0)
-    amp = g_on * mag * sign
-    buildup = _uniform(next(k), gust["buildup_time"], (3,))
-    g_start = _uniform(next(k), gust["start"])
+    buildup = _uniform(k_build, gust["buildup_time"], (3,))
+    sign = jnp.where(jax.random.bernoulli(k_sign, 0.5, (3,)), 1.0, -1.0)
+    if gust["magnitude"] == "turbulence":
+        multiple = _uniform(next(kw), gust["sigma_multiple"])
+        mag = multiple * gust_magnitude(airspeed * buildup, sigma, scale)
+        inputs["gust_sigma_multiple"] = multiple
+    else:
+        mag = jnp.concatenate(
+            [
+                _uniform(k_mag, gust["horizontal_amplitude"], (2,)),
+                _uniform(k_vert, gust["vertical_amplitude"], (1,)),
+            ]
+        )
+        inputs["gust_sigma_multiple"] = jnp.asarray(jnp.nan)
+    amp_uvw = g_on * mag * sign
+    g_start = _uniform(k_start, gust["start"])
+    amp = _rotate_horizontal(amp_uvw, direction)
     for j, ax in enumerate("xyz"):
         inputs[f"gust_amplitude_{ax}"] = amp[j]
         inputs[f"gust_buildup_{ax}"] = buildup[j]
     inputs["gust_speed"] = jnp.sqrt(jnp.sum(amp**2))
     inputs["gust_start"] = g_start
+    gust_vectors = _rotate_horizontal(jnp.diag(amp_uvw), direction).T  # (component, axis)
 
-    if turb["enabled"]:
-        level = _categorical(next(k), turb["intensity_probabilities"], TURBULENCE_INTENSITIES)
-    else:
-        level = jnp.asarray(0)
-    phase = jax.random.uniform(next(k), (3, len(omega)), maxval=2.0 * jnp.pi)
-    t_amp = jnp.asarray(amp_table)[level]
-    inputs["turbulence_level"] = level
-    inputs["turbulence_sigma_w"] = jnp.sqrt(0.5 * jnp.sum(t_amp[2] ** 2))
-    wind = Wind(g_start[None], buildup[None], amp[None], t_amp, jnp.asarray(omega), phase)
+    # Dryden turbulence (u, v, w) realised as sinusoids, rotated into the earth frame
+    t_amp = dryden_band_amplitudes(edges, sigma, scale, airspeed)
+    phase = jax.random.uniform(k_phase, (3, len(omega)), maxval=2.0 * jnp.pi)
+    for j, ax in enumerate("uvw"):
+        inputs[f"turbulence_sigma_{ax}"] = sigma[j]
+        inputs[f"turbulence_rms_{ax}"] = jnp.sqrt(0.5 * jnp.sum(t_amp[j] ** 2))
+    wind = Wind(
+        jnp.full(3, g_start),
+        jnp.repeat(buildup[:, None], 3, axis=1),
+        gust_vectors,
+        t_amp,
+        jnp.asarray(omega),
+        phase,
+        mean_wind_velocity(inputs["mean_wind_speed"], direction),
+    )
+    wind = eqx.tree_at(
+        lambda w: (w.turbulence_cos, w.turbulence_sin),
+        wind,
+        (
+            _rotate_horizontal(wind.turbulence_cos, direction),
+            _rotate_horizontal(wind.turbulence_sin, direction),
+        ),
+    )
 
     att = _uniform(next(k), ini["attitude"], (3,))
     rate = _uniform(next(k), ini["rate"], (3,))
@@ -253,8 +351,17 @@ def _sample_one(key, spec: dict, amp_table, omega, references):
     )
     nominal = QuadrotorParams()
     omega_max = jnp.sqrt(inputs["thrust_to_weight"] * nominal.m * nominal.g / (4.0 * nominal.b))
+    aero_fields = ("drag_coefficient", "cp_offset", *AERO_COEFFICIENTS, "hub_height")
     vehicle = eqx.tree_at(
-        lambda p: (p.Ix, p.Iy, p.Iz, p.b, p.d, p.omega_max, p.drag_coefficient, p.cp_offset),
+        lambda p: (
+            p.Ix,
+            p.Iy,
+            p.Iz,
+            p.b,
+            p.d,
+            p.omega_max,
+            *(getattr(p, name) for name in aero_fields),
+        ),
         nominal,
         (
             nominal.Ix * inputs["inertia_scale"],
@@ -263,8 +370,7 @@ def _sample_one(key, spec: dict, amp_table, omega, references):
             nominal.b * inputs["thrust_coefficient_scale"],
             nominal.d * inputs["drag_coefficient_scale"],
             omega_max,
-            inputs["drag_coefficient"],
-            inputs["cp_offset"],
+            *(inputs[name] for name in aero_fields),
         ),
     )
     return scenario, vehicle, inputs
@@ -276,27 +382,58 @@ def nominal_model(distribution: Distribution) -> QuadrotorParams:
     return QuadrotorParams()
 
 
-def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> CaseBatch:
-    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed``.
+def case_keys(seed: int, index) -> Array:
+    """The PRNG key of every case index (shape (n, 2)): ``fold_in(PRNGKey(seed), i)`` for
+    i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
+    i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
+    try:
+        index = np.asarray(index, dtype=np.int64)  # int64: at most MAX_CASE_INDEX
+    except OverflowError:
+        index = np.array([-1])
+    if index.size and index.min() < 0:
+        raise ValueError("case indices must be integers in [0, 2^63 - 1].")
+    lo = jnp.asarray((index & 0xFFFFFFFF).astype(np.uint32))
+    hi = jnp.asarray((index >> 32).astype(np.uint32))
+    return _keys(jax.random.PRNGKey(check_seed(seed)), lo, hi)
 
-    Case i uses the key ``fold_in(PRNGKey(seed), i)`` only, so it is the same in every batch.
+
+@jax.jit
+def _keys(base, lo, hi):
+    low = jax.vmap(lambda i: jax.random.fold_in(base, i))(lo)
+    high = jax.vmap(jax.random.fold_in)(low, hi)
+    return jnp.where((hi == 0)[:, None], low, high)
+
+
+def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> CaseBatch:
+    """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed`` (in [0,
+    2^63 - 1]; indices up to `MAX_CASE_INDEX`).
+
+    Case i uses its own key (`case_keys`) only, so it is the same in every batch.
     """
     if isinstance(n_cases, bool) or int(n_cases) < 1:
         raise ValueError(f"n_cases must be an integer >= 1, got {n_cases!r}.")
-    if int(start) < 0:
-        raise ValueError(f"start must be >= 0, got {start!r}.")
-    index = jnp.arange(int(start), int(start) + int(n_cases))
-    base = jax.random.PRNGKey(int(seed))
-    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(index)
+    if int(start) < 0 or int(start) + int(n_cases) - 1 > MAX_CASE_INDEX:
+        raise ValueError(
+            f"cases start .. start + n_cases - 1 must lie in [0, 2^63 - 1], got start {start!r}, "
+            f"n_cases {n_cases!r}."
+        )
+    index = np.arange(int(start), int(start) + int(n_cases), dtype=np.int64)
+    keys = case_keys(seed, index)
     scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
     unmodeled = None
     if distribution.spec["unmodeled"]["enabled"]:
-        group_keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(
-            (index // GROUP_SIZE) * GROUP_SIZE
-        )
+        group_keys = case_keys(seed, (index // GROUP_SIZE) * GROUP_SIZE)
         unmodeled, extra = _sample_unmodeled(distribution, keys, group_keys)
         inputs = {**inputs, **extra}
-    return CaseBatch(scenario, vehicle, nominal_model(distribution), inputs, index, unmodeled)
+    return CaseBatch(
+        scenario,
+        vehicle,
+        nominal_model(distribution),
+        inputs,
+        index,
+        unmodeled,
+        make_aerodynamics(distribution.spec["aero"]["model"]),
+    )
 
 
 def unmodeled_statics(distribution: Distribution) -> dict:
@@ -402,12 +539,13 @@ def _batch_sampler(distribution: Distribution):
     """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
     spec = distribution.spec
     turb = spec["turbulence"]
-    omega, domega = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
-    amp_table = np.stack(
-        [
-            dryden_amplitudes(name, turb["altitude"], turb["airspeed"], omega, domega)
-            for name in TURBULENCE_INTENSITIES
-        ]
+    omega, _ = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    edges = turbulence_edges(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    levels = [dryden_low_altitude(name, turb["altitude"]) for name in TURBULENCE_INTENSITIES]
+    tables = (
+        np.stack([sig for sig, _ in levels]),
+        np.stack([scale for _, scale in levels]),
+        np.array([w20(name) for name in TURBULENCE_INTENSITIES]),
     )
     references = shared_slot_references([paper_reference(p) for p in PROFILE_NAMES])
-    return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, amp_table, omega, references)))
+    return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, tables, edges, omega, references)))

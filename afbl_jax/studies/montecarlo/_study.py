@@ -10,11 +10,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ...io import controller_from_dict, run_metadata, table_columns
+from ...io import FileLock, atomic_write_text, controller_from_dict, run_metadata, table_columns
 from ...model import AbstractController
 from ._distribution import Distribution, default_distribution
-from ._report import format_summary, replay_worst, summarize, write_report
-from ._runner import SolverSettings, merge_results, run_montecarlo
+from ._report import format_summary, replay_worst, summarize, summary_json, write_report
+from ._runner import FOLDER_LOCK, SolverSettings, merge_results, read_invocations, run_montecarlo
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,8 @@ def run_study(config: StudyConfig, echo=print) -> dict | None:
     )
     elapsed = time.perf_counter() - t_start
     if c.host_count > 1:
-        _write_meta(out, elapsed)
+        with FileLock(out / FOLDER_LOCK):
+            _write_meta(out, elapsed)
         if echo is not None:
             echo(
                 f"host {c.host_index} of {c.host_count}: {table.num_rows} rows in {out} "
@@ -124,26 +125,26 @@ def _write_meta(out: Path, elapsed: float) -> dict:
             meta["versions"][extra] = "not installed"
     meta["elapsed_seconds_this_invocation"] = elapsed
     meta["results_file"] = "results.parquet"
-    meta["invocations"] = [
-        json.loads(line) for line in (out / "invocations.jsonl").read_text().splitlines() if line
-    ]
-    (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    meta["invocations"] = read_invocations(out)
+    atomic_write_text(json.dumps(meta, indent=2) + "\n", out / "meta.json")
     return meta
 
 
 def _finish(out: Path, table, controllers, distribution, seed, *, report, echo, elapsed) -> dict:
     cols = table_columns(table)
     summary = summarize(cols)
-    meta = _write_meta(out, elapsed)
-    settings = SolverSettings(**meta["config"]["settings"])
-    n_cases = int(meta["config"]["n_cases"])
-    if report:
-        replays = replay_worst(
-            cols, controllers, distribution, seed, k=min(5, n_cases), settings=settings
-        )
-        write_report(out, cols, summary, distribution, meta, replays)
-    else:
-        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    # runs sharing the folder write their (equal) reports one after the other
+    with FileLock(out / FOLDER_LOCK):
+        meta = _write_meta(out, elapsed)
+        settings = SolverSettings(**meta["config"]["settings"])
+        n_cases = int(meta["config"]["n_cases"])
+        if report:
+            replays = replay_worst(
+                cols, controllers, distribution, seed, k=min(5, n_cases), settings=settings
+            )
+            write_report(out, cols, summary, distribution, meta, replays)
+        else:
+            atomic_write_text(summary_json(summary), out / "summary.json")
     if echo is not None:
         echo(format_summary(summary))
         echo(

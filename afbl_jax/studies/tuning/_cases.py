@@ -16,7 +16,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ...model import QuadrotorParams
+from ...model import AbstractAerodynamics, LinearDrag, QuadrotorParams
 from ...scenario import Scenario
 from ..montecarlo import Distribution, default_distribution, sample_cases
 
@@ -32,12 +32,14 @@ class TuningCases(eqx.Module):
         vehicle: true `QuadrotorParams`, batched (n,).
         model: the controller's nominal `QuadrotorParams` (unbatched).
         inputs: sampled numbers per case (arrays of shape (n,) or (n, k)).
+        aerodynamics: the cases' aerodynamic model (static; coefficients in ``vehicle``).
     """
 
     scenario: Scenario
     vehicle: QuadrotorParams
     model: QuadrotorParams
     inputs: dict
+    aerodynamics: AbstractAerodynamics = eqx.field(default_factory=LinearDrag)
 
     @property
     def n_cases(self) -> int:

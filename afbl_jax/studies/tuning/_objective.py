@@ -170,8 +170,10 @@ def _finite(x):
 
 def case_costs(controller: AbstractController, cases, config: ObjectiveConfig) -> CaseCosts:
     """Simulate every case (vmap) and return its cost terms. ``cases`` has batched
-    ``.scenario`` and ``.vehicle`` and a ``.model`` (batched or not)."""
+    ``.scenario`` and ``.vehicle``, a ``.model`` (batched or not) and the ``.aerodynamics``
+    model of its cases."""
     model_batched = jax.tree.leaves(cases.model)[0].ndim > 0
+    aerodynamics = cases.aerodynamics
 
     def one(scenario, vehicle, model):
         return simulate(
@@ -183,6 +185,7 @@ def case_costs(controller: AbstractController, cases, config: ObjectiveConfig) -
             atol=config.atol,
             n_save=0,
             max_steps=config.max_steps,
+            aerodynamics=aerodynamics,
         )
 
     res = jax.vmap(one, in_axes=(0, 0, 0 if model_batched else None))(
