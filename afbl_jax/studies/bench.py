@@ -72,7 +72,7 @@ def realistic_unmodeled(duration: float = 20.0) -> UnmodeledDynamics:
     return UnmodeledDynamics.make(duration=duration, **REALISTIC_VEHICLE)
 
 
-def _mc_default(one_device: bool, unmodeled: bool = False) -> dict:
+def _mc_default(one_device: bool, unmodeled: bool = False, integrator: str = "lean") -> dict:
     from .montecarlo import BATCH_SETTINGS, DEFAULT_STRATEGY, STRATEGY_TOLERANCES, SolverSettings
 
     rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
@@ -84,6 +84,7 @@ def _mc_default(one_device: bool, unmodeled: bool = False) -> dict:
         "one_device": one_device,
         "always": True,
         "unmodeled": unmodeled,
+        "integrator": integrator,
     }
 
 
@@ -101,7 +102,11 @@ BATCH_STRATEGIES = {
     },
     "montecarlo_default": _mc_default(False),
     "montecarlo_default_1dev": _mc_default(True),
+    "montecarlo_default_diffeqsolve": _mc_default(False, integrator="diffeqsolve"),
     "montecarlo_default_unmodeled": _mc_default(False, unmodeled=True),
+    "montecarlo_default_unmodeled_diffeqsolve": _mc_default(
+        False, unmodeled=True, integrator="diffeqsolve"
+    ),
 }
 LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
 ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES)
@@ -343,6 +348,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
                 n_save=cfg.get("n_save", 0),
                 devices=devices,
                 unmodeled=unmodeled,
+                integrator=cfg.get("integrator", "lean"),
             )
         )
 
@@ -365,6 +371,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
         "n_save": cfg.get("n_save", 0),
         "devices": len(devices),
         "unmodeled": REALISTIC_VEHICLE if unmodeled else None,
+        "integrator": cfg.get("integrator", "lean") if cfg["strategy"] == "ensemble" else None,
         "sims_per_s": n / run,
         "seconds": run,
         "compile_s": max(first - run, 0.0),

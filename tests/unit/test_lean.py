@@ -1,0 +1,205 @@
+"""The lean ensemble integrator (`simulate_batch(integrator="lean")`, the default) agrees case
+by case with the `diffrax.diffeqsolve` ensemble (same solver, tolerances and groups): on the
+benchmark's canonical cases, on Monte-Carlo cases (rotor drag, Dryden turbulence, gusts) with
+divergent members, and with unmodeled dynamics (full plant, motor lag, digital control with
+delay and noise); chunks reuse one compiled program.
+
+Agreement bounds: ISE within 10 rtol (relative), statuses equal, the divergence time within one
+step (the lean loop ends a diverged case at the end of the step where it crossed the limits,
+diffeqsolve where a stage first crossed them inside the step), peaks from the same save times
+(diffrax's dense interpolation on both paths) within 10 rtol.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import afbl_jax as A
+from afbl_jax.studies import montecarlo as mc
+from afbl_jax.studies.bench import bench_cases
+
+from ..helpers import count_compiles
+
+RTOL, ATOL = 1e-6, 1e-8
+T1 = 4.0
+N, GROUP = 8, 4
+PEAKS = ("peak_attitude_error", "peak_altitude_error", "peak_saturation")
+SHORT = {  # Monte-Carlo defaults (rotor drag, mean wind, Dryden, gusts, pulses) over 4 s
+    "time": {"t1": T1},
+    "pulses": {"start": [0.5, 3.0]},
+    "gust": {"start": [0.5, 3.0]},
+    "payload": {"attach_time": [0.5, 3.0]},
+}
+
+
+def _both(controller, scenarios, vehicles=None, models=None, **kw):
+    return tuple(
+        A.simulate_batch(controller, scenarios, vehicles, models, integrator=i, **kw)
+        for i in ("lean", "diffeqsolve")
+    )
+
+
+def _heavy(scenarios, cases):
+    """Payload fraction 3 (4x the mass: more than the rotors can lift) attached at 0.5 s in
+    ``cases``."""
+    pf, pt = np.array(scenarios.payload_fraction), np.array(scenarios.payload_time)
+    pf[list(cases)], pt[list(cases)] = 3.0, 0.5
+    return eqx.tree_at(
+        lambda s: (s.payload_fraction, s.payload_time),
+        scenarios,
+        (jnp.asarray(pf), jnp.asarray(pt)),
+    )
+
+
+def _assert_agree(lean, ref, t_step, n_save=True):
+    """Case-by-case agreement (module docstring); ``t_step``: per-case bound on one step [s]."""
+    status = np.asarray(lean.status)
+    np.testing.assert_array_equal(status, np.asarray(ref.status))
+    ok = status == A.sim.STATUS_OK
+    assert ok.sum() >= 1
+    for k in ("ise_attitude", "ise_altitude", "effort"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(lean, k))[ok], np.asarray(getattr(ref, k))[ok], rtol=10 * RTOL
+        )
+    if n_save:
+        for k in PEAKS:
+            np.testing.assert_allclose(
+                np.asarray(getattr(lean, k))[ok], np.asarray(getattr(ref, k))[ok], rtol=10 * RTOL
+            )
+    dt = np.asarray(lean.t_final) - np.asarray(ref.t_final)
+    np.testing.assert_allclose(dt[ok], 0.0, atol=1e-12)
+    bad = ~ok
+    assert np.all(dt[bad] >= -1e-12) and np.all(dt[bad] <= np.asarray(t_step)[bad]), dt
+
+
+def test_lean_agrees_with_diffeqsolve_on_canonical_cases():
+    """Benchmark cases (the paper's uncertain step, payload and pulse amplitudes varied), groups
+    of 2: no divergence, so both take the same steps."""
+    scenarios, _ = bench_cases(4, seed=3)
+    lean, ref = _both(
+        A.AFBL(), scenarios, rtol=RTOL, atol=ATOL, n_save=81, group_size=2, dtype="float64"
+    )
+    assert np.all(np.asarray(lean.status) == A.sim.STATUS_OK)
+    _assert_agree(lean, ref, np.zeros(4))
+    np.testing.assert_allclose(lean.num_steps, ref.num_steps, rtol=0.01)
+    # the cases differ, so equality is not trivial
+    assert np.ptp(np.asarray(lean.ise_altitude)) > 1e-3 * np.max(np.asarray(lean.ise_altitude))
+
+
+@pytest.fixture(scope="module")
+def mc_cases():
+    batch = mc.sample_cases(mc.Distribution.from_dict(SHORT), N, 3)
+    assert batch.aerodynamics.name == "rotor_drag"
+    return batch, _heavy(batch.scenario, (1, 6))
+
+
+@pytest.fixture(scope="module")
+def mc_lean(mc_cases):
+    batch, scenarios = mc_cases
+    return A.simulate_batch(
+        A.make_controller("afbl"),
+        scenarios,
+        batch.vehicle,
+        batch.model,
+        aerodynamics=batch.aerodynamics,
+        rtol=RTOL,
+        atol=ATOL,
+        n_save=41,
+        group_size=GROUP,
+    )
+
+
+def test_lean_agrees_with_diffeqsolve_on_montecarlo_cases_with_divergence(mc_cases, mc_lean):
+    batch, scenarios = mc_cases
+    ref = A.simulate_batch(
+        A.make_controller("afbl"),
+        scenarios,
+        batch.vehicle,
+        batch.model,
+        aerodynamics=batch.aerodynamics,
+        rtol=RTOL,
+        atol=ATOL,
+        n_save=41,
+        group_size=GROUP,
+        integrator="diffeqsolve",
+    )
+    lean = mc_lean
+    status = np.asarray(lean.status)
+    assert list(np.nonzero(status == A.sim.STATUS_DIVERGED)[0]) == [1, 6]
+    # one step: bounded by twice the group's mean step (the steps are short and even here)
+    t_step = 2 * T1 / np.asarray(lean.num_steps)
+    _assert_agree(lean, ref, t_step)
+
+
+def test_lean_chunks_reuse_one_program_and_equal_unchunked(mc_cases, mc_lean):
+    batch, scenarios = mc_cases
+
+    def run(sc):
+        return A.simulate_batch(
+            A.make_controller("afbl"),
+            sc,
+            batch.vehicle,
+            batch.model,
+            aerodynamics=batch.aerodynamics,
+            rtol=RTOL,
+            atol=ATOL,
+            n_save=41,
+            group_size=GROUP,
+            chunk_size=GROUP,
+        )
+
+    chunked = run(scenarios)
+    for k in ("ise_attitude", "ise_altitude", "t_final", *PEAKS):
+        np.testing.assert_allclose(
+            getattr(chunked, k), getattr(mc_lean, k), rtol=1e-9, atol=1e-14, err_msg=k
+        )
+    np.testing.assert_array_equal(chunked.status, mc_lean.status)
+    other = _heavy(batch.scenario, (0,))  # new values, same shapes
+    with count_compiles() as compiles:
+        run(other)
+    assert compiles.count == 0
+
+
+def test_lean_digital_control_agrees_with_diffeqsolve():
+    """Full plant, motor lag, digital control at 200 Hz with delay and measurement noise: the
+    lean loop lands its steps on the sample instants; a diverged case ends on one."""
+    dist = mc.Distribution.from_dict(
+        {
+            **{**SHORT, "time": {"t1": 3.0}},
+            "pulses": {"start": [0.5, 2.0]},
+            "gust": {"start": [0.5, 2.0]},
+            "payload": {"fraction": [0.0, 0.2], "attach_time": [0.5, 2.0]},
+            "unmodeled": {
+                "enabled": True,
+                "plant": "full",
+                "motor_tau": [0.02, 0.04],
+                "control_rate": [200.0, 200.0],
+                "delay_samples": [0, 2],
+                "noise_angle": [0.0, 1e-3],
+                "noise_rate": [0.0, 1e-2],
+            },
+        }
+    )
+    batch = mc.sample_cases(dist, N, 5)
+    scenarios = _heavy(batch.scenario, (1,))
+    lean, ref = _both(
+        A.make_controller("fbl"),
+        scenarios,
+        batch.vehicle,
+        batch.model,
+        unmodeled=batch.unmodeled,
+        aerodynamics=batch.aerodynamics,
+        rtol=RTOL,
+        atol=ATOL,
+        n_save=31,
+        group_size=GROUP,
+        max_steps=4096,
+    )
+    assert list(np.nonzero(np.asarray(lean.status) != A.sim.STATUS_OK)[0]) == [1]
+    _assert_agree(lean, ref, np.full(N, 1.0 / 200.0))
+    # the diverged case ends on a sample instant (k / 200 s)
+    k = float(lean.t_final[1]) * 200.0
+    assert abs(k - round(k)) < 1e-9
