@@ -450,7 +450,9 @@ def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
         use = groups.per_case(due) & counts(groups.per_case(t))
         return j + due, fold_peaks(running, sample_at(t), use)
 
-    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, peaks)
+    # one round unconditionally (a step rarely holds more than one save time; straight-line
+    # code here kept XLA on one thread), further rounds while any group has one due
+    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(peaks))
 
 
 def _lean_result(out, cases: _Cases, groups: Groups, dtype, n_save) -> BatchMetrics:
