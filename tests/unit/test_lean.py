@@ -13,6 +13,7 @@ diffeqsolve where a stage first crossed them inside the step), peaks from the sa
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -203,3 +204,27 @@ def test_lean_digital_control_agrees_with_diffeqsolve():
     # the diverged case ends on a sample instant (k / 200 s)
     k = float(lean.t_final[1]) * 200.0
     assert abs(k - round(k)) < 1e-9
+
+
+@pytest.mark.slow
+def test_diffeqsolve_ensemble_is_reverse_differentiable_lean_is_not():
+    """``integrator="diffeqsolve"``: `jax.grad` through the ensemble equals central differences
+    of the lean ensemble; the lean loop refuses reverse mode (a while loop)."""
+    scenarios, _ = bench_cases(2, seed=2)
+    scenarios = eqx.tree_at(lambda s: s.t1, scenarios, jnp.full(2, 3.0))
+
+    def loss(k, integrator):
+        ctrl = eqx.tree_at(lambda c: c.k, A.AFBL(), k)
+        m = A.simulate_batch(ctrl, scenarios, rtol=1e-8, atol=1e-10, integrator=integrator)
+        return jnp.sum(m.ise_attitude + m.ise_altitude)
+
+    k0 = A.AFBL().k
+    grad = np.asarray(jax.grad(loss)(k0, "diffeqsolve"))
+    h = 1e-4
+    fd = [
+        (loss(k0.at[i].add(h), "lean") - loss(k0.at[i].add(-h), "lean")) / (2 * h) for i in range(4)
+    ]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+    assert np.all(np.abs(grad) > 0)
+    with pytest.raises(ValueError, match="Reverse-mode"):
+        jax.grad(loss)(k0, "lean")
