@@ -28,6 +28,10 @@ Strategies (rows of bench.json):
   one-sample measurement delay (noise off). Its accuracy is measured against an x64 Dopri8
   reference of the same loop; its ratio to the scipy loop (which simulates the paper's loop)
   says what a realistic vehicle costs, not a like-for-like speed-up.
+- ``montecarlo_default_diffeqsolve``, ``montecarlo_default_unmodeled_diffeqsolve``: the same two
+  rows with ``simulate_batch(integrator="diffeqsolve")`` (`diffrax.diffeqsolve` per group; with
+  digital control a scan of one solve per sample interval) instead of the default lean loop:
+  the baseline of the lean integrator, measured in the same run.
 
 Every batched row splits the cases over all local devices (``devices`` in the row) except
 ``montecarlo_default_1dev``; ``afbl bench`` starts with one XLA CPU device per core
