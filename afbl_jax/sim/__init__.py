@@ -1,5 +1,6 @@
 """The closed loop and its solves: one case (`simulate`), many cases (`simulate_batch`: vmap or
-grouped ensembles, float32, chunks, devices), the status enumeration and CPU devices."""
+grouped ensembles on the lean loop or diffeqsolve, float32, chunks, devices), the status
+enumeration and CPU devices."""
 
 from ._batch import STRATEGIES as STRATEGIES
 from ._batch import case_layout as case_layout
@@ -13,8 +14,13 @@ from ._closed_loop import Held as Held
 from ._closed_loop import Signals as Signals
 from ._devices import configure_cpu_devices as configure_cpu_devices
 from ._digital import sample_instant as sample_instant
+from ._ensemble import INTEGRATORS as INTEGRATORS
 from ._ensemble import ensemble_rms_norm as ensemble_rms_norm
 from ._ensemble import solve_group as solve_group
+from ._lean import Groups as Groups
+from ._lean import LoopOutcome as LoopOutcome
+from ._lean import Step as Step
+from ._lean import lean_loop as lean_loop
 from ._solve import SOLVERS as SOLVERS
 from ._solve import SimulationResult as SimulationResult
 from ._solve import closed_loop_of as closed_loop_of
