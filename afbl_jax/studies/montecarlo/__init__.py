@@ -36,10 +36,10 @@ from ._sampler import cases_from_variates as cases_from_variates
 from ._sampler import discrete_variates as discrete_variates
 from ._sampler import draw_variates as draw_variates
 from ._sampler import fixed_variates as fixed_variates
+from ._sampler import sample_cases as sample_cases
 from ._sampler import variate_groups as variate_groups
 from ._sampler import variate_layout as variate_layout
 from ._sampler import variate_names as variate_names
-from ._sampler import sample_cases as sample_cases
 from ._study import StudyConfig as StudyConfig
 from ._study import merge_study as merge_study
 from ._study import run_study as run_study

@@ -540,9 +540,7 @@ def variate_names(distribution: Distribution) -> tuple[str, ...]:
 
 def variate_groups(distribution: Distribution) -> tuple[str, ...]:
     """Per variate, the name of its group (the variate's name without the ``[j]``)."""
-    return tuple(
-        name for name, size, _ in variate_layout(distribution.spec) for _ in range(size)
-    )
+    return tuple(name for name, size, _ in variate_layout(distribution.spec) for _ in range(size))
 
 
 def discrete_variates(distribution: Distribution) -> np.ndarray:
