@@ -87,8 +87,8 @@ def to_unit(z) -> np.ndarray:
 
 
 def to_normal(u) -> np.ndarray:
-    """z = Phi^-1(u) (u clipped into (0, 1))."""
-    u = np.clip(np.asarray(u, dtype=np.float64), 1e-300, 1 - 1e-16)
+    """z = Phi^-1(u), u clipped into [1e-7, 1 - 1e-7] (the bounds 0, 1 map to |z| = 5.2)."""
+    u = np.clip(np.asarray(u, dtype=np.float64), 1e-7, 1 - 1e-7)
     return special.ndtri(u)
 
 

@@ -11,7 +11,8 @@ simulations it ran.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import functools
+from dataclasses import dataclass
 
 import equinox as eqx
 import jax
@@ -65,7 +66,6 @@ class MarginProblem:
     temperature: float = 0.05
     simulations: int = 0
     gradient_simulations: int = 0
-    _grad_fns: dict = field(default_factory=dict, repr=False)
 
     @property
     def dimension(self) -> int:
@@ -119,15 +119,41 @@ class MarginProblem:
         smooth margin) or "ise_attitude" [rad^2 s]. Non-finite gradient entries are set to 0."""
         if output not in ("margin", "ise_attitude"):
             raise ValueError(f"output must be margin or ise_attitude, got {output!r}.")
-        if output not in self._grad_fns:
-            self._grad_fns[output] = _grad_function(self, output)
+        fn = _grad_function(
+            self.distribution,
+            self.attitude_limit,
+            self.altitude_limit,
+            self.rtol,
+            self.atol,
+            self.n_save,
+            self.max_steps,
+            self.temperature,
+            output,
+        )
         u = jnp.clip(jnp.asarray(u, dtype=jnp.float64), 0.0, 1.0)
-        value, grad, exact = self._grad_fns[output](self.controller, u)
+        value, grad, exact = fn(self.controller, u)
         self.gradient_simulations += int(u.shape[0])
         return np.asarray(value), np.asarray(grad), np.asarray(exact)
 
 
-def _grad_function(p: MarginProblem, output: str):
+@functools.lru_cache(maxsize=16)
+def _grad_function(
+    distribution, attitude_limit, altitude_limit, rtol, atol, n_save, max_steps, temperature, output
+):
+    """The jitted batched (value, gradient, exact margin) function of one configuration (cached:
+    problems with the same settings share the compiled program; the controller is an
+    argument)."""
+    p = MarginProblem(
+        None,
+        distribution,
+        attitude_limit,
+        altitude_limit,
+        rtol,
+        atol,
+        n_save,
+        max_steps,
+        temperature,
+    )
     one_case = case_map(p.distribution)
     aero = make_aerodynamics(p.distribution.spec["aero"]["model"])
     model = nominal_model(p.distribution)
