@@ -7,7 +7,8 @@
   case) unless told to go on.
 - `cmaes_search`: the gradient-free baseline, CMA-ES (the ``cmaes`` package, bounds [0, 1] on the
   same free variates), one population per generation evaluated as one batch on the fast path,
-  the population size equal to the number of starts, from the first start, same budget.
+  the population size equal to the number of starts (at least 4), from the first start, same
+  budget.
 - `most_likely_failure`: from a failing case u_f, the failing point of highest nominal density
   along the ray from the nominal point in standard-normal space (z = Phi^-1(u); the density falls
   with |z|): the smallest t in (0, 1] with margin(t z_f) > 0, by a batched grid then bisection.
@@ -114,7 +115,7 @@ def cmaes_search(
     stop_at_failure: bool = True,
 ) -> SearchResult:
     """CMA-ES on the free variates (others held at the first start's values), population
-    ``len(starts)``, mean at the first start, bounds [0, 1], at most ``budget`` simulations."""
+    ``max(4, len(starts))``, mean at the first start, bounds [0, 1], at most ``budget`` simulations."""
     from cmaes import CMA
 
     t0 = time.perf_counter()
@@ -122,7 +123,7 @@ def cmaes_search(
     free = problem.free
     base = starts[0].copy()
     k = int(free.sum())
-    pop = max(2, starts.shape[0])
+    pop = max(4, starts.shape[0])  # CMA-ES's weights are undefined below 4
     cma = CMA(
         mean=base[free].copy(),
         sigma=sigma,
