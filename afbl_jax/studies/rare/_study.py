@@ -336,6 +336,11 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
     if c.estimator not in ESTIMATORS:
         raise ValueError(f"unknown estimator {c.estimator!r}; allowed: {', '.join(ESTIMATORS)}.")
     out = Path(c.out)
+    if (out / "run.json").exists():
+        raise ValueError(
+            f"{out} holds a crude Monte-Carlo study (run.json), whose results.parquet a "
+            "rare-event run would replace; give another --out folder."
+        )
     out.mkdir(parents=True, exist_ok=True)
     summary: dict = {"estimator": c.estimator, "controllers": {}}
     tables = []
