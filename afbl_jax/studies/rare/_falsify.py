@@ -115,7 +115,8 @@ def cmaes_search(
     stop_at_failure: bool = True,
 ) -> SearchResult:
     """CMA-ES on the free variates (others held at the first start's values), population
-    ``max(4, len(starts))``, mean at the first start, bounds [0, 1], at most ``budget`` simulations."""
+    ``max(4, len(starts))``, mean at the first start, bounds [0, 1], at most ``budget``
+    simulations."""
     from cmaes import CMA
 
     t0 = time.perf_counter()
