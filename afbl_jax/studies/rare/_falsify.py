@@ -208,17 +208,22 @@ def design_point(
     standard-normal space: ``z <- (grad g . z - g) grad g / |grad g|^2`` for the smooth margin
     g(z) (> 0 = failure) on the variates of ``mask`` (the others at the nominal z = 0, u = 1/2,
     or at ``z0``), one gradient simulation per iteration; the step is capped at ``max_norm``.
-    Returns (z (D,), history of (|z|, exact margin)). Convergence is not guaranteed for a
-    margin as non-linear as divergence; the point is used as an importance-sampling centre,
-    which keeps the estimate unbiased whatever it is."""
+    Returns (z (D,), history of (|z|, exact margin)): the failing iterate nearest the origin,
+    else the last one. Convergence is not guaranteed for a margin as non-linear as divergence
+    (the iterates can oscillate); the point is used as an importance-sampling centre, which
+    keeps the estimate unbiased whatever it is (but not efficient)."""
     mask = np.asarray(mask, dtype=bool)
     z = np.zeros(problem.dimension) if z0 is None else np.array(z0, dtype=np.float64)
     history = []
+    best, best_norm = None, np.inf
     for _ in range(iterations):
         u = to_unit(z)
         value, grad_u, exact = problem.value_and_grad(u[None])
         grad = np.where(mask, grad_u[0] * _normal_pdf(z), 0.0)  # du/dz = phi(z)
-        history.append((float(np.linalg.norm(z[mask])), float(exact[0])))
+        norm = float(np.linalg.norm(z[mask]))
+        history.append((norm, float(exact[0])))
+        if exact[0] > 0 and norm < best_norm:
+            best, best_norm = z.copy(), norm
         gg = float(grad @ grad)
         if not np.isfinite(gg) or gg == 0.0:
             break
@@ -228,7 +233,7 @@ def design_point(
         if n > max_norm:
             new = z + step * (max_norm / n)
         z = new
-    return z, history
+    return (z if best is None else best), history
 
 
 def _normal_pdf(z):
