@@ -173,7 +173,20 @@ n_frequencies = 4
 """
 
 
+def test_rare_failures_script_rejects_bad_input(tmp_path):
+    r = _run("rare_failures.py", "--starts", "1", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip() == "afbl falsify: error: --starts must be >= 2, got 1."
+    r = _run("rare_failures.py", "estimate", "--estimator", "x", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "unknown --estimator 'x'" in r.stderr
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
 def test_rare_failures_script(tmp_path):
+    """End to end (10 min on the busy 2-core machine: two fresh processes compile the gradient
+    and the ensembles; the same functions run in the default suite through notebook 04 and
+    tests/unit/test_rare.py)."""
     dist = tmp_path / "short.toml"
     dist.write_text(SHORT_TOML)
     r = _run(
@@ -224,7 +237,3 @@ def test_rare_failures_script(tmp_path):
     est = doc["rare_event"]["controllers"]["afbl"]
     assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
     assert est["total_simulations"] >= 32
-    r = _run("rare_failures.py", "--starts", "1", "--out", str(tmp_path / "bad"))
-    assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert r.stderr.strip() == "afbl falsify: error: --starts must be >= 2, got 1."
-    assert not (tmp_path / "bad").exists()
