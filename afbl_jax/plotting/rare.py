@@ -8,14 +8,26 @@ import numpy as np
 
 def figure_search(histories: dict):
     """Best exact failure margin [-] against simulations used, per (controller, method) run;
-    ``histories``: label -> list of (simulations, best margin)."""
+    ``histories``: label -> list of (simulations, best margin); runs whose label ends in
+    "seed N" share the colour and legend entry of their label's other words."""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 3.6), layout="constrained")
+    colours: dict[str, str] = {}
     for label, hist in histories.items():
+        group = label.rsplit(" seed ", 1)[0]
+        first = group not in colours
+        colours.setdefault(group, f"C{len(colours)}")
         if len(hist):
             h = np.asarray(hist, dtype=float)
-            ax.step(h[:, 0], h[:, 1], where="post", label=label)
+            ax.step(
+                h[:, 0],
+                h[:, 1],
+                where="post",
+                color=colours[group],
+                alpha=0.8,
+                label=group if first else None,
+            )
     ax.axhline(0.0, color="k", lw=0.8, ls="--", label="failure (margin > 0)")
     ax.set_xlabel("simulations used [-]")
     ax.set_ylabel("best failure margin [-]")
