@@ -19,9 +19,11 @@ from .io import load_gains as load_gains
 from .io import save_gains as save_gains
 from .metrics import METRIC_NAMES as METRIC_NAMES
 from .metrics import BatchMetrics as BatchMetrics
+from .metrics import failure_margin as failure_margin
 from .metrics import metrics_from_result as metrics_from_result
 from .metrics import peaks_over_samples as peaks_over_samples
 from .metrics import sample_peaks as sample_peaks
+from .metrics import smooth_margin as smooth_margin
 from .model import AERODYNAMIC_MODELS as AERODYNAMIC_MODELS
 from .model import AFBL as AFBL
 from .model import CHANNELS as CHANNELS

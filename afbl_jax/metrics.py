@@ -13,6 +13,21 @@ states linearly interpolated between control samples, the held command), countin
 samples at or before the run's end (`peaks_over_samples`); a run with no such sample has NaN
 peaks. `BatchMetrics` holds them per case; `metrics_from_result` converts a single
 `afbl_jax.simulate` result, and the ensemble computes the same samples inside its solve.
+
+Failure margin (`failure_margin`, column ``failure_margin`` [-]): an STL-style robustness value
+of "the attitude and altitude errors stay within the failure limits", from the same in-solve
+peaks: ``max(peak_attitude_error / attitude_limit, peak_altitude_error / altitude_limit) - 1``
+(`peak_margin`), > 0 when a peak crossed its limit. The failure limits default to the
+divergence limits of `afbl_jax.sim.DivergenceLimits` (1.2 rad, 10 m: `FAILURE_ATTITUDE`,
+`FAILURE_ALTITUDE`), so the Monte-Carlo failure (status not ok) and the sign agree exactly:
+a failed run (diverged, stopped by the solver) gets ``max(peak_margin, FAILED_MARGIN)`` (its
+peaks stop where it stopped; the limit may be crossed between two samples) and a run that
+finished ok ``min(peak_margin, 0)`` (the attitude peak also counts |e_psi| and the reference,
+the divergence test only |phi|, |theta|). Failed <=> margin > 0. `smooth_margin` is the
+differentiable variant for optimisation: a log-sum-exp over the channels at a temperature,
+an upper bound of `peak_margin` by at most ``temperature log 2``; the peaks themselves are
+maxima over the samples (differentiable almost everywhere: through the sample that attains
+them).
 """
 
 from __future__ import annotations
@@ -30,6 +45,7 @@ METRIC_NAMES: tuple[str, ...] = (
     "peak_attitude_error",
     "peak_altitude_error",
     "peak_saturation",
+    "failure_margin",
     "solver_steps",
     "t_final",
     "status",
@@ -66,6 +82,67 @@ class BatchMetrics(eqx.Module):
     @property
     def ok(self) -> Array:
         return self.status == 0
+
+    @property
+    def failure_margin(self) -> Array:
+        """`failure_margin` at the default failure limits: > 0 exactly when the run failed."""
+        return failure_margin(self)
+
+
+FAILURE_ATTITUDE = 1.2
+"""Default failure limit on the attitude error peak [rad] (= the divergence limit)."""
+FAILURE_ALTITUDE = 10.0
+"""Default failure limit on the altitude error peak [m] (= the divergence limit)."""
+FAILED_MARGIN = 1e-6
+"""Smallest margin given to a failed run (the peaks of a run stopped between two samples can
+lie below the limits)."""
+
+
+def _ratios(m: BatchMetrics, attitude_limit, altitude_limit) -> Array:
+    """Peaks over limits, channel axis last; NaN peaks (no sample before the run's end) +inf."""
+    r = jnp.stack(
+        [m.peak_attitude_error / attitude_limit, m.peak_altitude_error / altitude_limit], axis=-1
+    )
+    return jnp.where(jnp.isnan(r), jnp.inf, r)
+
+
+def peak_margin(
+    m: BatchMetrics, attitude_limit=FAILURE_ATTITUDE, altitude_limit=FAILURE_ALTITUDE
+) -> Array:
+    """``max(peak_attitude_error / attitude_limit [rad/rad], peak_altitude_error /
+    altitude_limit [m/m]) - 1`` per case: > 0 when a sampled peak crossed its limit."""
+    return jnp.max(_ratios(m, attitude_limit, altitude_limit), axis=-1) - 1.0
+
+
+def failure_margin(m: BatchMetrics, attitude_limit=None, altitude_limit=None) -> Array:
+    """The failure margin per case (module docstring): > 0 exactly when the run failed
+    (status not ok) or, with limits given, a peak crossed them.
+
+    Limits None (the default limits, = the divergence limits): a run that finished ok has margin
+    ``min(peak_margin, 0)`` <= 0, a failed one ``max(peak_margin, FAILED_MARGIN)``. With limits
+    [rad], [m] given (e.g. tighter ones): failed runs ``max(peak_margin, FAILED_MARGIN)``, the
+    others `peak_margin`."""
+    default = attitude_limit is None and altitude_limit is None
+    attitude_limit = FAILURE_ATTITUDE if attitude_limit is None else attitude_limit
+    altitude_limit = FAILURE_ALTITUDE if altitude_limit is None else altitude_limit
+    pm = peak_margin(m, attitude_limit, altitude_limit)
+    failed = m.status != 0
+    finished = jnp.minimum(pm, 0.0) if default else pm
+    return jnp.where(failed, jnp.maximum(pm, FAILED_MARGIN), finished)
+
+
+def smooth_margin(
+    m: BatchMetrics,
+    attitude_limit=FAILURE_ATTITUDE,
+    altitude_limit=FAILURE_ALTITUDE,
+    temperature=0.05,
+) -> Array:
+    """Differentiable failure margin: ``temperature * logsumexp(ratios / temperature) - 1``
+    over the two channels' peak / limit ratios. An upper bound of `peak_margin`, above it by
+    at most ``temperature * log 2``; the status does not enter (use `failure_margin` for the
+    failed / not failed decision)."""
+    r = _ratios(m, attitude_limit, altitude_limit)
+    return temperature * jax.nn.logsumexp(r / temperature, axis=-1) - 1.0
 
 
 def sample_peaks(
@@ -141,6 +218,7 @@ def metric_columns(m: BatchMetrics) -> dict[str, Array]:
         "peak_attitude_error": m.peak_attitude_error,
         "peak_altitude_error": m.peak_altitude_error,
         "peak_saturation": m.peak_saturation,
+        "failure_margin": m.failure_margin,
         "solver_steps": m.num_steps,
         "t_final": m.t_final,
         "status": m.status,

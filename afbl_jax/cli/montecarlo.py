@@ -17,6 +17,7 @@ from ._common import (
     controllers_from_args,
     seed,
 )
+from .falsify import add_failure_limits, check_failure_limits, distribution_from_args
 
 
 def register(sub) -> None:
@@ -53,6 +54,31 @@ def register(sub) -> None:
     add_tolerances(p, note=" (default: 3e-6 / 3e-7 for ensemble_f32, else 1e-6 / 1e-8)")
     p.add_argument("--no-report", action="store_true", help="skip report.md/html and figures")
     add_progress(p)
+    rare = p.add_argument_group(
+        "rare-event estimators",
+        "--estimator is|ce estimates the failure probability by importance sampling in the "
+        "standard-normal space of the case variates (float64 ensembles at --rtol/--atol, "
+        "default 1e-6 / 1e-8) and writes OUT/rare_event.json, results.parquet (the estimating "
+        "samples with their log weights) and rare_report.md; --cases is then the size of the "
+        "final importance-sampling stage",
+    )
+    rare.add_argument(
+        "--estimator",
+        default="crude",
+        help="crude (the Monte-Carlo study above), is (importance sampling centred on the most "
+        "likely failure a gradient search finds) or ce (cross-entropy method)",
+    )
+    rare.add_argument(
+        "--stage-cases", type=int, default=512, help="ce: samples per cross-entropy stage"
+    )
+    rare.add_argument(
+        "--search-budget",
+        type=int,
+        default=8,
+        help="is/ce: gradient simulations (HL-RF iterations) of the search for the most likely "
+        "failure that centres is and starts ce (0: none, the nominal point)",
+    )
+    add_failure_limits(rare)
     hosts = p.add_argument_group(
         "several hosts",
         "run the same command on every host, each with its own --out, then join the "
@@ -128,6 +154,15 @@ def run(args) -> int:
             f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
         )
     check_tolerances(args)
+    if args.estimator not in ("crude", "is", "ce"):
+        raise UsageError(f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce.")
+    if args.estimator != "crude":
+        return run_rare(args)
+    if args.attitude_limit is not None or args.altitude_limit is not None:
+        raise UsageError(
+            "--attitude-limit/--altitude-limit apply to --estimator is|ce; the crude study "
+            "counts status failures (the divergence limits)."
+        )
     check_out(args.out)
     controllers = controllers_from_args(args)
     distribution = (
@@ -165,6 +200,44 @@ def run(args) -> int:
             host_count=host_count,
         )
     )
+    return 0
+
+
+def run_rare(args) -> int:
+    from ..studies.rare import RareEventConfig, run_rare_event
+
+    if args.stage_cases < 2:
+        raise UsageError(f"--stage-cases must be >= 2, got {args.stage_cases}.")
+    if args.search_budget < 0:
+        raise UsageError(f"--search-budget must be >= 0, got {args.search_budget}.")
+    if args.host_index is not None or args.distributed:
+        raise UsageError("--estimator is|ce runs on one host (no --host-index/--distributed).")
+    check_failure_limits(args)
+    check_out(args.out)
+    controllers = controllers_from_args(args)
+    distribution = distribution_from_args(args)
+    print(
+        f"afbl montecarlo: --estimator {args.estimator}, {', '.join(controllers)} (seed "
+        f"{args.seed}, {args.cases} final samples) -> {args.out}",
+        flush=True,
+    )
+    run_rare_event(
+        RareEventConfig(
+            controllers,
+            args.out,
+            args.estimator,
+            distribution,
+            seed=args.seed,
+            n_cases=args.cases,
+            n_per_stage=args.stage_cases,
+            search_budget=args.search_budget,
+            attitude_limit=args.attitude_limit,
+            altitude_limit=args.altitude_limit,
+            rtol=args.rtol or 1e-6,
+            atol=args.atol or 1e-8,
+        )
+    )
+    print(f"wrote {args.out}/rare_event.json, results.parquet, rare_report.md")
     return 0
 
 

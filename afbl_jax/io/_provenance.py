@@ -22,6 +22,8 @@ _PACKAGES = (
     "matplotlib",
     "pyarrow",
     "scipy",
+    "cmaes",
+    "SALib",
 )
 
 

@@ -185,3 +185,30 @@ def test_bench_cli_smoke(tmp_path, capsys):
     assert "ensemble" in capsys.readouterr().out
     assert main(["bench", "--out", str(out), "--strategies", "magic"]) == 2
     assert "unknown strategies" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["montecarlo", "--estimator", "mlmc"], "unknown --estimator 'mlmc'; allowed: crude"),
+        (["montecarlo", "--attitude-limit", "0.3"], "--attitude-limit/--altitude-limit apply"),
+        (["montecarlo", "--estimator", "ce", "--attitude-limit", "-1"], "--attitude-limit must"),
+        (["montecarlo", "--estimator", "ce", "--stage-cases", "1"], "--stage-cases must be"),
+        (["falsify", "--budget", "4", "--starts", "8"], "--budget (4) must be >= --starts (8)"),
+        (["falsify", "--sensitivity-samples", "48"], "must be 0 or a power of 2, got 48"),
+    ],
+)
+def test_rare_failure_cli_rejects_bad_input(tmp_path, capsys, argv, message):
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"afbl {argv[0]}: error: ") and err.count("\n") == 1
+    assert message in err
+    assert not out.exists()
+
+
+def test_rare_failure_cli_refuses_unmodeled(tmp_path, capsys):
+    dist = tmp_path / "d.toml"
+    dist.write_text("[unmodeled]\nenabled = true\nmotor_tau = [0.01, 0.02]\n")
+    assert main(["falsify", "--distribution", str(dist), "--out", str(tmp_path / "o")]) == 2
+    assert "[unmodeled] enabled = true is not supported" in capsys.readouterr().err

@@ -36,6 +36,7 @@ def test_every_study_script_is_tested():
         "tune_gains.py",
         "unmodeled_dynamics.py",
         "benchmark.py",
+        "rare_failures.py",
     }
     assert {p.name for p in STUDIES.glob("*.py")} == tested
 
@@ -158,3 +159,81 @@ def test_bad_input_is_one_line_exit_2(tmp_path, script, args, match):
     assert match in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not out.exists()
+
+
+SHORT_TOML = """
+[time]
+t1 = 2.0
+[pulses]
+start = [0.5, 1.5]
+[gust]
+start = [0.5, 1.5]
+[turbulence]
+n_frequencies = 4
+"""
+
+
+def test_rare_failures_script_rejects_bad_input(tmp_path):
+    r = _run("rare_failures.py", "--starts", "1", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip() == "afbl falsify: error: --starts must be >= 2, got 1."
+    r = _run("rare_failures.py", "estimate", "--estimator", "x", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "unknown --estimator 'x'" in r.stderr
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+def test_rare_failures_script(tmp_path):
+    """End to end (10 min on the busy 2-core machine: two fresh processes compile the gradient
+    and the ensembles; the same functions run in the default suite through notebook 04 and
+    tests/unit/test_rare.py)."""
+    dist = tmp_path / "short.toml"
+    dist.write_text(SHORT_TOML)
+    r = _run(
+        "rare_failures.py",
+        "--controllers",
+        "afbl",
+        "--starts",
+        "2",
+        "--budget",
+        "4",
+        "--attitude-limit",
+        "0.2",
+        "--distribution",
+        str(dist),
+        "--out",
+        str(tmp_path / "f"),
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "f" / "falsify.json").read_text())
+    assert doc["config"]["budget"] == 4 and doc["git_revision"]
+    searches = doc["falsify"]["controllers"]["afbl"]["searches"]
+    assert searches[0]["gradient"]["simulations"] <= 4 and searches[0]["cmaes"]["simulations"] <= 4
+    for name in ("worst_cases.parquet", "rare_report.md", "figures/falsify_search.png"):
+        assert (tmp_path / "f" / name).exists(), name
+    r = _run(
+        "rare_failures.py",
+        "estimate",
+        "--estimator",
+        "ce",
+        "--controllers",
+        "afbl",
+        "--cases",
+        "16",
+        "--stage-cases",
+        "16",
+        "--search-budget",
+        "0",
+        "--attitude-limit",
+        "0.2",
+        "--distribution",
+        str(dist),
+        "--out",
+        str(tmp_path / "r"),
+        "--no-progress",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "r" / "rare_event.json").read_text())
+    est = doc["rare_event"]["controllers"]["afbl"]
+    assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
+    assert est["total_simulations"] >= 32

@@ -5,6 +5,7 @@ from ._distribution import Distribution as Distribution
 from ._distribution import default_distribution as default_distribution
 from ._distribution import load_distribution as load_distribution
 from ._report import format_summary as format_summary
+from ._report import rare_sections as rare_sections
 from ._report import summarize as summarize
 from ._report import wilson_interval as wilson_interval
 from ._report import write_report as write_report
@@ -31,7 +32,16 @@ from ._sampler import MAX_CASE_INDEX as MAX_CASE_INDEX
 from ._sampler import UNMODELED_COLUMNS as UNMODELED_COLUMNS
 from ._sampler import CaseBatch as CaseBatch
 from ._sampler import case_keys as case_keys
+from ._sampler import case_map as case_map
+from ._sampler import cases_from_variates as cases_from_variates
+from ._sampler import discrete_variates as discrete_variates
+from ._sampler import draw_variates as draw_variates
+from ._sampler import fixed_variates as fixed_variates
+from ._sampler import nominal_model as nominal_model
 from ._sampler import sample_cases as sample_cases
+from ._sampler import variate_groups as variate_groups
+from ._sampler import variate_layout as variate_layout
+from ._sampler import variate_names as variate_names
 from ._study import StudyConfig as StudyConfig
 from ._study import merge_study as merge_study
 from ._study import run_study as run_study

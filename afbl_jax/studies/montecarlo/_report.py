@@ -296,6 +296,88 @@ def _html_table(header, rows) -> str:
     return f"<table><tr>{h}</tr>{body}</table>"
 
 
+def rare_sections(out: str | Path) -> list[str]:
+    """Markdown sections for the rare-failure results found in ``out`` (``falsify.json``,
+    ``rare_event.json``; sensitivities inside falsify.json), with their figures; empty when
+    none were computed there."""
+    out = Path(out)
+    md: list[str] = []
+    f = out / "falsify.json"
+    if f.exists():
+        data = json.loads(f.read_text())["falsify"]
+        md += ["## Worst cases (falsification)", ""]
+        rows = []
+        for name, e in data["controllers"].items():
+            for method, label in (("gradient", "gradient ascent"), ("cmaes", "CMA-ES")):
+                m = e[method]
+                rows.append(
+                    [
+                        name,
+                        label,
+                        f"{m['found']}/{m['searches']}",
+                        f"{m['median_first_failure']:g}",
+                        f"{m['best_margin']:+.4f}",
+                    ]
+                )
+        md += [
+            _md_table(
+                [
+                    "controller",
+                    "method",
+                    "searches finding a failure",
+                    "median simulations to first failure",
+                    "best margin",
+                ],
+                rows,
+            ),
+            "",
+        ]
+        for name, e in data["controllers"].items():
+            ml = e.get("most_likely_failure")
+            if ml:
+                md.append(
+                    f"{name}: most likely failure found at standard-normal distance "
+                    f"{ml['normal_distance']:.2f} ({ml['simulations']} simulations)."
+                )
+        md += ["", "![search](figures/falsify_search.png)", ""]
+        md += ["![worst cases](figures/falsify_worst_cases.png)", ""]
+        if any(e.get("sensitivity") for e in data["controllers"].values()):
+            md += ["## Sensitivities", "", "![sensitivities](figures/sensitivity.png)", ""]
+            for name, e in data["controllers"].items():
+                sens = e.get("sensitivity")
+                if not sens:
+                    continue
+                for key, sd in sens.items():
+                    st = np.asarray(sd["sobol"]["ST"], dtype=float)
+                    order = np.argsort(-np.nan_to_num(st, nan=-np.inf))[:5]
+                    top = ", ".join(f"{sd['sobol']['names'][i]} {st[i]:.2f}" for i in order)
+                    md.append(f"- {name}, {key}: largest total Sobol indices: {top}")
+            md.append("")
+    f = out / "rare_event.json"
+    if f.exists():
+        data = json.loads(f.read_text())["rare_event"]
+        md += [f"## Rare-event estimate ({data['estimator']})", ""]
+        rows = [
+            [
+                name,
+                f"{e['probability']:.3e}",
+                f"{e['cv']:.3f}",
+                f"[{e['ci95'][0]:.3e}, {e['ci95'][1]:.3e}]",
+                str(e["total_simulations"]),
+                f"{e['seconds']:.1f}",
+            ]
+            for name, e in data["controllers"].items()
+        ]
+        md += [
+            _md_table(
+                ["controller", "P(failure)", "cv", "95 % interval", "simulations", "time [s]"],
+                rows,
+            ),
+            "",
+        ]
+    return md
+
+
 def write_report(
     out: str | Path,
     cols: dict,
@@ -359,6 +441,10 @@ def write_report(
             f"<h2>{html.escape(title)}</h2>",
             f"<img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>",
         ]
+    rare = rare_sections(out)
+    if rare:
+        md += rare
+        hp += [f"<pre>{html.escape(chr(10).join(rare))}</pre>"]
     dist_rows = [
         [s, k, json.dumps(v)] for s, body in distribution.spec.items() for k, v in body.items()
     ]

@@ -207,9 +207,19 @@ def _uniform(key, rng, shape=()):
     return jax.random.uniform(key, shape, minval=lo, maxval=hi)
 
 
-def _categorical(key, probs: dict, names) -> Array:
+def _scaled(u, rng):
+    """A standard uniform variate u in [0, 1) mapped onto ``rng`` = [low, high], exactly as
+    ``jax.random.uniform(key, shape, minval=low, maxval=high)`` maps the same bits."""
+    lo, hi = (jnp.asarray(v, u.dtype) for v in rng)
+    return jnp.maximum(lo, u * (hi - lo) + lo)
+
+
+def _choice(u, probs: dict, names) -> Array:
+    """The category of a standard uniform variate u, exactly as ``jax.random.choice(key,
+    len(names), p=...)`` picks it from the same bits."""
     p = np.array([float(probs.get(n, 0.0)) for n in names])
-    return jax.random.choice(key, len(names), p=jnp.asarray(p / p.sum()))
+    p_cuml = jnp.cumsum(jnp.asarray(p / p.sum()))
+    return jnp.searchsorted(p_cuml, p_cuml[-1] * (1 - u)).astype(int)
 
 
 def _rotate_horizontal(vectors, direction):
@@ -219,32 +229,115 @@ def _rotate_horizontal(vectors, direction):
     return jnp.tensordot(rot, vectors, axes=1)
 
 
-def _sample_one(key, spec: dict, tables, edges, omega, references):
+def variate_layout(spec: dict) -> tuple[tuple[str, int, bool], ...]:
+    """The standard uniform variates of one case of a distribution ``spec``: (name, size,
+    discrete) in the order of `flatten_variates`. Every sampled input is a function of these
+    (`_case_from_variates`); ``discrete`` variates pick a category or a sign (piecewise
+    constant)."""
+    gust, turb, mean = spec["gust"], spec["turbulence"], spec["mean_wind"]
+    n_f = int(turb["n_frequencies"])
+    out = [
+        ("payload_fraction", 1, False),
+        ("payload_time", 1, False),
+        ("inertia_scale", 1, False),
+        ("thrust_coefficient_scale", 1, False),
+        ("drag_coefficient_scale", 1, False),
+        ("thrust_to_weight", 1, False),
+        ("drag_coefficient", 1, False),
+        ("cp_offset", 1, False),
+        *((name, 1, False) for name in (*AERO_COEFFICIENTS, "hub_height")),
+        ("pulse_torque", 3, False),
+        ("pulse_force_z", 1, False),
+        ("pulse_start", 2, False),
+        ("pulse_duration", 2, False),
+    ]
+    if gust["magnitude"] != "turbulence":
+        out += [("gust_horizontal_amplitude", 2, False), ("gust_vertical_amplitude", 1, False)]
+    out += [("gust_sign", 3, True), ("gust_buildup", 3, False), ("gust_start", 1, False)]
+    if turb["enabled"]:
+        out.append(("turbulence_level", 1, True))
+    out.append(("turbulence_phase", 3 * n_f, False))
+    if mean["source"] != "w20":
+        out.append(("mean_wind_speed", 1, False))
+    out.append(("mean_wind_direction", 1, False))
+    if gust["magnitude"] == "turbulence":
+        out.append(("gust_sigma_multiple", 1, False))
+    out += [("initial_attitude", 3, False), ("initial_rate", 3, False), ("profile", 1, True)]
+    return tuple(out)
+
+
+def _draw_variates(key, spec: dict) -> dict[str, Array]:
+    """The standard uniform variates of the case with PRNG key ``key`` (`variate_layout`
+    names, each of shape (size,)), drawn from the same keys and bits as the sampler always
+    drew its inputs."""
     k = iter(jax.random.split(key, 24))
     kw = iter(jax.random.split(jax.random.fold_in(key, _WIND_STREAM), 10))
+    gust, turb, mean = spec["gust"], spec["turbulence"], spec["mean_wind"]
+    uni = jax.random.uniform
+    v = {}
+    for name in (
+        "payload_fraction",
+        "payload_time",
+        "inertia_scale",
+        "thrust_coefficient_scale",
+        "drag_coefficient_scale",
+        "thrust_to_weight",
+        "drag_coefficient",
+        "cp_offset",
+    ):
+        v[name] = uni(next(k), (1,))
+    for name in (*AERO_COEFFICIENTS, "hub_height"):
+        v[name] = uni(next(kw), (1,))
+    v["pulse_torque"] = uni(next(k), (3,))
+    v["pulse_force_z"] = uni(next(k), (1,))
+    v["pulse_start"] = uni(next(k), (2,))
+    v["pulse_duration"] = uni(next(k), (2,))
+    k_mag, k_vert, k_sign, k_build, k_start = (next(k) for _ in range(5))
+    if gust["magnitude"] != "turbulence":
+        v["gust_horizontal_amplitude"] = uni(k_mag, (2,))
+        v["gust_vertical_amplitude"] = uni(k_vert, (1,))
+    v["gust_sign"] = uni(k_sign, (3,))  # jax.random.bernoulli(k, 0.5): u < 0.5
+    v["gust_buildup"] = uni(k_build, (3,))
+    v["gust_start"] = uni(k_start, (1,))
+    if turb["enabled"]:
+        v["turbulence_level"] = uni(next(k), (1,))
+    v["turbulence_phase"] = uni(next(k), (3 * int(turb["n_frequencies"]),))
+    if mean["source"] != "w20":
+        v["mean_wind_speed"] = uni(next(kw), (1,))
+    v["mean_wind_direction"] = uni(next(kw), (1,))
+    if gust["magnitude"] == "turbulence":
+        v["gust_sigma_multiple"] = uni(next(kw), (1,))
+    v["initial_attitude"] = uni(next(k), (3,))
+    v["initial_rate"] = uni(next(k), (3,))
+    v["profile"] = uni(next(k), (1,))
+    return v
+
+
+def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
+    """(scenario, vehicle, inputs) of one case from its standard uniform variates ``v``
+    (`variate_layout`); a pure, differentiable map (piecewise constant in the discrete
+    variates)."""
     pay, err, aero = spec["payload"], spec["model_error"], spec["aero"]
     pul, gust, turb, ini = spec["pulses"], spec["gust"], spec["turbulence"], spec["initial"]
     mean = spec["mean_wind"]
     inputs = {}
-    inputs["payload_fraction"] = _uniform(next(k), pay["fraction"])
-    inputs["payload_time"] = _uniform(next(k), pay["attach_time"])
+    inputs["payload_fraction"] = _scaled(v["payload_fraction"][0], pay["fraction"])
+    inputs["payload_time"] = _scaled(v["payload_time"][0], pay["attach_time"])
     for name in (
         "inertia_scale",
         "thrust_coefficient_scale",
         "drag_coefficient_scale",
         "thrust_to_weight",
     ):
-        inputs[name] = _uniform(next(k), err[name])
-    inputs["drag_coefficient"] = _uniform(next(k), aero["drag_coefficient"])
-    inputs["cp_offset"] = _uniform(next(k), aero["cp_offset"])
-    for name in (*AERO_COEFFICIENTS, "hub_height"):
-        inputs[name] = _uniform(next(kw), aero[name])
+        inputs[name] = _scaled(v[name][0], err[name])
+    for name in ("drag_coefficient", "cp_offset", *AERO_COEFFICIENTS, "hub_height"):
+        inputs[name] = _scaled(v[name][0], aero[name])
 
     on = 1.0 if pul["enabled"] else 0.0
-    torque = on * _uniform(next(k), pul["torque"], (3,))
-    force_z = on * _uniform(next(k), pul["vertical_force"])
-    starts = _uniform(next(k), pul["start"], (2,))
-    durations = _uniform(next(k), pul["duration"], (2,))
+    torque = on * _scaled(v["pulse_torque"], pul["torque"])
+    force_z = on * _scaled(v["pulse_force_z"][0], pul["vertical_force"])
+    starts = _scaled(v["pulse_start"], pul["start"])
+    durations = _scaled(v["pulse_duration"], pul["duration"])
     for j, ax in enumerate(("phi", "theta", "psi")):
         inputs[f"pulse_torque_{ax}"] = torque[j]
     inputs["pulse_torque_start"], inputs["pulse_torque_duration"] = starts[0], durations[0]
@@ -260,18 +353,18 @@ def _sample_one(key, spec: dict, tables, edges, omega, references):
 
     # turbulence level, its standard's intensities and the wind that carries it
     sigma_table, scale_table, w20_table = tables
-    k_mag, k_vert, k_sign, k_build, k_start = (next(k) for _ in range(5))
     if turb["enabled"]:
-        level = _categorical(next(k), turb["intensity_probabilities"], TURBULENCE_INTENSITIES)
+        level = _choice(
+            v["turbulence_level"][0], turb["intensity_probabilities"], TURBULENCE_INTENSITIES
+        )
     else:
         level = jnp.asarray(0)
-    k_phase = next(k)
     sigma, scale = jnp.asarray(sigma_table)[level], jnp.asarray(scale_table)[level]
     if mean["source"] == "w20":
         speed = mean_wind_speed(jnp.asarray(w20_table)[level], turb["altitude"])
     else:
-        speed = _uniform(next(kw), mean["speed"])
-    direction = _uniform(next(kw), mean["direction"])
+        speed = _scaled(v["mean_wind_speed"][0], mean["speed"])
+    direction = _scaled(v["mean_wind_direction"][0], mean["direction"])
     airspeed = speed if turb["airspeed"] == 0 else jnp.asarray(float(turb["airspeed"]))
     inputs["mean_wind_speed"] = speed if mean["enabled"] else jnp.zeros_like(speed)
     inputs["mean_wind_direction"] = direction
@@ -280,22 +373,22 @@ def _sample_one(key, spec: dict, tables, edges, omega, references):
 
     # one 1-cosine gust: components u, v, w along the mean wind, each with its build-up time
     g_on = 1.0 if gust["enabled"] else 0.0
-    buildup = _uniform(k_build, gust["buildup_time"], (3,))
-    sign = jnp.where(jax.random.bernoulli(k_sign, 0.5, (3,)), 1.0, -1.0)
+    buildup = _scaled(v["gust_buildup"], gust["buildup_time"])
+    sign = jnp.where(v["gust_sign"] < 0.5, 1.0, -1.0)
     if gust["magnitude"] == "turbulence":
-        multiple = _uniform(next(kw), gust["sigma_multiple"])
+        multiple = _scaled(v["gust_sigma_multiple"][0], gust["sigma_multiple"])
         mag = multiple * gust_magnitude(airspeed * buildup, sigma, scale)
         inputs["gust_sigma_multiple"] = multiple
     else:
         mag = jnp.concatenate(
             [
-                _uniform(k_mag, gust["horizontal_amplitude"], (2,)),
-                _uniform(k_vert, gust["vertical_amplitude"], (1,)),
+                _scaled(v["gust_horizontal_amplitude"], gust["horizontal_amplitude"]),
+                _scaled(v["gust_vertical_amplitude"], gust["vertical_amplitude"]),
             ]
         )
         inputs["gust_sigma_multiple"] = jnp.asarray(jnp.nan)
     amp_uvw = g_on * mag * sign
-    g_start = _uniform(k_start, gust["start"])
+    g_start = _scaled(v["gust_start"][0], gust["start"])
     amp = _rotate_horizontal(amp_uvw, direction)
     for j, ax in enumerate("xyz"):
         inputs[f"gust_amplitude_{ax}"] = amp[j]
@@ -306,7 +399,7 @@ def _sample_one(key, spec: dict, tables, edges, omega, references):
 
     # Dryden turbulence (u, v, w) realised as sinusoids, rotated into the earth frame
     t_amp = dryden_band_amplitudes(edges, sigma, scale, airspeed)
-    phase = jax.random.uniform(k_phase, (3, len(omega)), maxval=2.0 * jnp.pi)
+    phase = _scaled(v["turbulence_phase"], (0.0, 2.0 * jnp.pi)).reshape(3, len(omega))
     for j, ax in enumerate("uvw"):
         inputs[f"turbulence_sigma_{ax}"] = sigma[j]
         inputs[f"turbulence_rms_{ax}"] = jnp.sqrt(0.5 * jnp.sum(t_amp[j] ** 2))
@@ -328,14 +421,14 @@ def _sample_one(key, spec: dict, tables, edges, omega, references):
         ),
     )
 
-    att = _uniform(next(k), ini["attitude"], (3,))
-    rate = _uniform(next(k), ini["rate"], (3,))
+    att = _scaled(v["initial_attitude"], ini["attitude"])
+    rate = _scaled(v["initial_rate"], ini["rate"])
     for j, ax in enumerate(("phi", "theta", "psi")):
         inputs[f"initial_{ax}"] = att[j]
         inputs[f"initial_{ax}d"] = rate[j]
     initial = jnp.zeros(12).at[3:6].set(att).at[9:12].set(rate)
 
-    profile = _categorical(next(k), spec["reference"]["profile_probabilities"], PROFILE_NAMES)
+    profile = _choice(v["profile"][0], spec["reference"]["profile_probabilities"], PROFILE_NAMES)
     inputs["profile"] = profile
     reference = jax.tree.map(lambda *refs: jnp.stack(refs)[profile], *references)
 
@@ -436,6 +529,143 @@ def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int
     )
 
 
+def variate_names(distribution: Distribution) -> tuple[str, ...]:
+    """Name of every standard variate (``name`` or ``name[j]`` for vector variates), in the
+    order of the variate vector."""
+    out = []
+    for name, size, _ in variate_layout(distribution.spec):
+        out += [name] if size == 1 else [f"{name}[{j}]" for j in range(size)]
+    return tuple(out)
+
+
+def variate_groups(distribution: Distribution) -> tuple[str, ...]:
+    """Per variate, the name of its group (the variate's name without the ``[j]``)."""
+    return tuple(name for name, size, _ in variate_layout(distribution.spec) for _ in range(size))
+
+
+def discrete_variates(distribution: Distribution) -> np.ndarray:
+    """Boolean mask (D,) of the discrete variates (category / sign choices)."""
+    return np.array(
+        [disc for _, size, disc in variate_layout(distribution.spec) for _ in range(size)]
+    )
+
+
+def fixed_variates(distribution: Distribution) -> np.ndarray:
+    """Boolean mask (D,) of the variates that do not change the case: ranges [x, x] and
+    disabled pulses (their draws are still made and recorded)."""
+    spec = distribution.spec
+    width = {
+        "payload_fraction": spec["payload"]["fraction"],
+        "payload_time": spec["payload"]["attach_time"],
+        **{k: v for k, v in spec["model_error"].items()},
+        **{k: v for k, v in spec["aero"].items() if k != "model"},
+        "gust_buildup": spec["gust"]["buildup_time"],
+        "gust_start": spec["gust"]["start"],
+        "gust_sigma_multiple": spec["gust"]["sigma_multiple"],
+        "gust_horizontal_amplitude": spec["gust"]["horizontal_amplitude"],
+        "gust_vertical_amplitude": spec["gust"]["vertical_amplitude"],
+        "mean_wind_speed": spec["mean_wind"]["speed"],
+        "mean_wind_direction": spec["mean_wind"]["direction"],
+        "initial_attitude": spec["initial"]["attitude"],
+        "initial_rate": spec["initial"]["rate"],
+    }
+    pulses = spec["pulses"]
+    if pulses["enabled"]:
+        width.update(
+            pulse_torque=pulses["torque"],
+            pulse_force_z=pulses["vertical_force"],
+            pulse_start=pulses["start"],
+            pulse_duration=pulses["duration"],
+        )
+    else:
+        width.update({k: [0, 0] for k in ("pulse_torque", "pulse_force_z")})
+        width.update({k: [0, 0] for k in ("pulse_start", "pulse_duration")})
+    out = []
+    for name, size, _ in variate_layout(spec):
+        rng = width.get(name)
+        out += [rng is not None and rng[0] == rng[1]] * size
+    return np.array(out)
+
+
+def _check_variates_supported(distribution: Distribution) -> None:
+    if distribution.spec["unmodeled"]["enabled"]:
+        raise ValueError(
+            "cases from standard variates need [unmodeled] enabled = false (the unmodeled "
+            "inputs are drawn from their own stream, not from variates)."
+        )
+
+
+def draw_variates(distribution: Distribution, n_cases: int, seed: int, start: int = 0) -> Array:
+    """The standard variates (n_cases, D) of cases ``start, ..., start + n_cases - 1`` of
+    ``seed``: `cases_from_variates` of them is `sample_cases` of the same cases."""
+    index = np.arange(int(start), int(start) + int(n_cases), dtype=np.int64)
+    return _variate_sampler(distribution)(case_keys(seed, index))
+
+
+def flatten_variates(v: dict, layout) -> Array:
+    """Variate dict (`variate_layout` names, leading axes kept) -> vector (..., D)."""
+    return jnp.concatenate([v[name] for name, _, _ in layout], axis=-1)
+
+
+def unflatten_variates(u, layout) -> dict:
+    """Vector (..., D) -> variate dict (`variate_layout` names, each (..., size))."""
+    out, i = {}, 0
+    for name, size, _ in layout:
+        out[name] = u[..., i : i + size]
+        i += size
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _variate_sampler(distribution: Distribution):
+    layout = variate_layout(distribution.spec)
+    return jax.jit(
+        jax.vmap(lambda key: flatten_variates(_draw_variates(key, distribution.spec), layout))
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def case_map(distribution: Distribution):
+    """The pure map of one case's standard variates u (D,) to ``(scenario, vehicle, inputs)``
+    (the `CaseBatch` fields of one case, unbatched); differentiable in the continuous
+    variates, for use inside jax.vmap / grad / jit."""
+    _check_variates_supported(distribution)
+    spec = distribution.spec
+    layout = variate_layout(spec)
+    tables, edges, omega, references = _sampler_tables(distribution)
+
+    def one(u):
+        return _case_from_variates(
+            unflatten_variates(u, layout), spec, tables, edges, omega, references
+        )
+
+    return one
+
+
+def cases_from_variates(distribution: Distribution, u, index=None) -> CaseBatch:
+    """A `CaseBatch` from standard variates u (n, D) (``index``: the case indices recorded,
+    default 0..n-1). Values of u are used as given (clip to [0, 1] to stay in the bounds)."""
+    _check_variates_supported(distribution)
+    u = jnp.asarray(u)
+    scenario, vehicle, inputs = _map_sampler(distribution)(u)
+    n = u.shape[0]
+    index = np.arange(n, dtype=np.int64) if index is None else np.asarray(index, np.int64)
+    return CaseBatch(
+        scenario,
+        vehicle,
+        nominal_model(distribution),
+        inputs,
+        index,
+        None,
+        make_aerodynamics(distribution.spec["aero"]["model"]),
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _map_sampler(distribution: Distribution):
+    return jax.jit(jax.vmap(case_map(distribution)))
+
+
 def unmodeled_statics(distribution: Distribution) -> dict:
     """Static `UnmodeledDynamics` fields shared by all cases of an enabled distribution:
     ``plant``, ``max_samples = ceil(t1 * max control rate)`` (0 = continuous) and
@@ -534,9 +764,8 @@ def shared_slot_references(references: list[Reference]) -> list[Reference]:
     return out
 
 
-@functools.lru_cache(maxsize=8)
-def _batch_sampler(distribution: Distribution):
-    """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
+def _sampler_tables(distribution: Distribution):
+    """Turbulence tables, band edges and frequencies, and the references of a distribution."""
     spec = distribution.spec
     turb = spec["turbulence"]
     omega, _ = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
@@ -548,4 +777,18 @@ def _batch_sampler(distribution: Distribution):
         np.array([w20(name) for name in TURBULENCE_INTENSITIES]),
     )
     references = shared_slot_references([paper_reference(p) for p in PROFILE_NAMES])
-    return jax.jit(jax.vmap(lambda key: _sample_one(key, spec, tables, edges, omega, references)))
+    return tables, edges, omega, references
+
+
+@functools.lru_cache(maxsize=8)
+def _batch_sampler(distribution: Distribution):
+    """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
+    spec = distribution.spec
+    tables, edges, omega, references = _sampler_tables(distribution)
+    return jax.jit(
+        jax.vmap(
+            lambda key: _case_from_variates(
+                _draw_variates(key, spec), spec, tables, edges, omega, references
+            )
+        )
+    )

@@ -1,0 +1,24 @@
+"""Rare failures: worst-case search (falsification), rare-event failure probabilities and
+global sensitivities of the failure margin over a Monte-Carlo distribution's standard
+variates."""
+
+from ._estimators import Estimate as Estimate
+from ._estimators import cross_entropy as cross_entropy
+from ._estimators import crude as crude
+from ._estimators import importance_sampling as importance_sampling
+from ._estimators import normal_tail as normal_tail
+from ._estimators import to_normal as to_normal
+from ._estimators import to_unit as to_unit
+from ._estimators import wilson as wilson
+from ._falsify import SearchResult as SearchResult
+from ._falsify import cmaes_search as cmaes_search
+from ._falsify import gradient_ascent as gradient_ascent
+from ._falsify import most_likely_failure as most_likely_failure
+from ._problem import MarginProblem as MarginProblem
+from ._sensitivity import dgsm as dgsm
+from ._sensitivity import sobol_indices as sobol_indices
+from ._study import ESTIMATORS as ESTIMATORS
+from ._study import FalsifyConfig as FalsifyConfig
+from ._study import RareEventConfig as RareEventConfig
+from ._study import run_falsify as run_falsify
+from ._study import run_rare_event as run_rare_event

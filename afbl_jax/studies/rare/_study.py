@@ -1,0 +1,447 @@
+"""The rare-failure studies behind ``afbl falsify`` and ``afbl montecarlo --estimator``.
+
+`run_falsify`: per controller and per search seed, projected multi-start gradient ascent and the
+CMA-ES baseline with the same budget from the same starts (`afbl_jax.studies.rare.falsify`),
+the most likely failure along the ray to the worst failing case, the worst cases re-simulated
+(figures), and optionally the global sensitivities (DGSM from batched gradients, Sobol indices
+from SALib) of the failure margin and of the attitude ISE. Writes ``falsify.json`` (config,
+seed, versions, git revision: `afbl_jax.io.run_metadata`), ``worst_cases.parquet`` (the worst
+case of every search, its inputs and margin), ``sensitivity.json`` and figures.
+
+`run_rare_event`: a failure probability per controller by ``"crude"``, ``"is"`` (importance
+sampling centred on the most likely failure found by a short gradient search) or ``"ce"``
+(cross-entropy method) in standard-normal space of the variates. Writes ``rare_event.json``
+(estimate, cv, 95 % interval, simulations, stages; with `afbl_jax.io.run_metadata`) and
+``results.parquet`` (the estimating stage's samples: case inputs, margin, log weight).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ...io import (
+    atomic_write_bytes,
+    atomic_write_table,
+    atomic_write_text,
+    gains_to_dict,
+    run_metadata,
+)
+from ...model import AbstractController
+from ...sim import simulate
+from ..montecarlo import (
+    Distribution,
+    cases_from_variates,
+    default_distribution,
+    draw_variates,
+    variate_groups,
+)
+from ._estimators import Estimate, cross_entropy, crude, importance_sampling, to_unit
+from ._falsify import cmaes_search, design_point, gradient_ascent, most_likely_failure
+from ._problem import MarginProblem
+from ._sensitivity import dgsm, sobol_indices
+
+ESTIMATORS = ("crude", "is", "ce")
+
+
+@dataclass(frozen=True)
+class FalsifyConfig:
+    """A worst-case search (`run_falsify`).
+
+    Attributes:
+        controllers: name -> controller; out: output folder.
+        distribution: case distribution (bounds of the search; ``[unmodeled]`` off).
+        starts: starts of the gradient ascent = CMA-ES population size.
+        budget: simulations per search (each method, controller and seed).
+        seeds: search seeds 0..seeds-1 (seed s starts from cases s * starts ... of the
+            distribution's ``seed``); seed: the case seed.
+        learning_rate: Adam step on the variates; sigma: CMA-ES initial step.
+        attitude_limit [rad], altitude_limit [m]: failure limits (None: divergence limits).
+        sensitivity_samples: points for DGSM (gradients) and base samples for Sobol (power of
+            2); 0: no sensitivities.
+        rtol, atol, n_save: solver settings.
+    """
+
+    controllers: dict[str, AbstractController]
+    out: Path
+    distribution: Distribution = field(default_factory=default_distribution)
+    starts: int = 8
+    budget: int = 64
+    seeds: int = 1
+    seed: int = 0
+    learning_rate: float = 0.05
+    sigma: float = 0.3
+    attitude_limit: float | None = None
+    altitude_limit: float | None = None
+    sensitivity_samples: int = 0
+    rtol: float = 1e-6
+    atol: float = 1e-8
+    n_save: int = 401
+
+    def to_dict(self) -> dict:
+        return {
+            "controllers": {n: gains_to_dict(c) for n, c in self.controllers.items()},
+            "distribution": self.distribution.to_dict(),
+            **{
+                k: getattr(self, k)
+                for k in (
+                    "starts",
+                    "budget",
+                    "seeds",
+                    "seed",
+                    "learning_rate",
+                    "sigma",
+                    "attitude_limit",
+                    "altitude_limit",
+                    "sensitivity_samples",
+                    "rtol",
+                    "atol",
+                    "n_save",
+                )
+            },
+        }
+
+
+def _problem(c, controller) -> MarginProblem:
+    return MarginProblem(
+        controller,
+        c.distribution,
+        c.attitude_limit,
+        c.altitude_limit,
+        rtol=c.rtol,
+        atol=c.atol,
+        n_save=c.n_save,
+    )
+
+
+def _replay(problem: MarginProblem, u):
+    batch = cases_from_variates(problem.distribution, np.asarray(u)[None])
+    scenario, vehicle, model = batch.case(0)
+    return simulate(
+        problem.controller,
+        scenario,
+        vehicle,
+        model,
+        rtol=problem.rtol,
+        atol=problem.atol,
+        n_save=problem.n_save,
+        aerodynamics=batch.aerodynamics,
+    )
+
+
+def _inputs_row(problem: MarginProblem, u) -> dict:
+    batch = cases_from_variates(problem.distribution, np.asarray(u)[None])
+    return {k: float(np.asarray(v)[0]) for k, v in batch.inputs.items()}
+
+
+def run_falsify(config: FalsifyConfig, echo=print) -> dict:
+    """Run the searches (module docstring); returns the summary written to falsify.json."""
+    from ...plotting.rare import figure_search, figure_sensitivity, figure_trajectories
+
+    c = config
+    out = Path(c.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    summary: dict = {"controllers": {}}
+    histories, replays, rows = {}, {}, []
+    for name, controller in c.controllers.items():
+        problem = _problem(c, controller)
+        runs = []
+        for s in range(c.seeds):
+            starts = np.asarray(draw_variates(c.distribution, c.starts, c.seed, start=s * c.starts))
+            g = gradient_ascent(problem, starts, c.budget, c.learning_rate)
+            b = cmaes_search(problem, starts, c.budget, c.sigma, seed=s)
+            runs.append({"seed": s, "gradient": g.to_dict(), "cmaes": b.to_dict()})
+            for r in (g, b):
+                rows.append(
+                    {
+                        "controller": name,
+                        "method": r.method,
+                        "search_seed": s,
+                        "margin": r.best_margin,
+                        "first_failure_simulations": -1
+                        if r.first_failure is None
+                        else r.first_failure,
+                        **_inputs_row(problem, r.best_u),
+                    }
+                )
+            histories[f"{name} gradient seed {s}"] = g.history
+            histories[f"{name} CMA-ES seed {s}"] = b.history
+            if echo is not None:
+                echo(
+                    f"{name} seed {s}: gradient best margin {g.best_margin:+.4f}, first failure "
+                    f"after {g.first_failure} sims ({g.seconds:.1f} s); CMA-ES "
+                    f"{b.best_margin:+.4f}, {b.first_failure} sims ({b.seconds:.1f} s)"
+                )
+            if s == 0:
+                worst = g if g.best_margin >= b.best_margin else b
+                replays[name] = (worst, _replay(problem, worst.best_u))
+        entry = {"searches": runs, **_first_failure_table(runs)}
+        failing = [r for r in rows if r["controller"] == name and r["margin"] > 0]
+        if failing:
+            worst_u = replays[name][0].best_u
+            u_ml, dist, used = most_likely_failure(problem, worst_u)
+            entry["most_likely_failure"] = {
+                "normal_distance": dist,
+                "simulations": used,
+                "inputs": _inputs_row(problem, u_ml),
+            }
+            replays[f"{name} most likely"] = (None, _replay(problem, u_ml))
+        if c.sensitivity_samples:
+            entry["sensitivity"] = _sensitivity(problem, c.sensitivity_samples, c.seed)
+        summary["controllers"][name] = entry
+    summary["seconds"] = time.perf_counter() - t_start
+    import pyarrow as pa
+
+    atomic_write_table(pa.Table.from_pylist(rows), out / "worst_cases.parquet")
+    meta = run_metadata(c.to_dict())
+    meta["falsify"] = summary
+    atomic_write_text(json.dumps(meta, indent=2, default=_json) + "\n", out / "falsify.json")
+    fig_dir = out / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    _save(figure_search(histories), fig_dir / "falsify_search.png")
+    _save(
+        figure_trajectories({k: r for k, (_, r) in replays.items()}),
+        fig_dir / "falsify_worst_cases.png",
+    )
+    rankings = {}
+    for name, entry in summary["controllers"].items():
+        sens = entry.get("sensitivity")
+        if sens:
+            for key, label in (("margin", "failure margin"), ("ise_attitude", "ISE attitude")):
+                d = sens[key]
+                rankings[f"{name}: {label}, DGSM bound"] = (
+                    d["dgsm"]["names"],
+                    d["dgsm"]["bound"],
+                    "nu / (pi^2 V) [-]",
+                )
+                rankings[f"{name}: {label}, Sobol S_T"] = (
+                    d["sobol"]["names"],
+                    d["sobol"]["ST"],
+                    "total Sobol index [-]",
+                )
+    if rankings:
+        _save(figure_sensitivity(rankings), fig_dir / "sensitivity.png")
+        atomic_write_text(
+            json.dumps(
+                {n: e.get("sensitivity") for n, e in summary["controllers"].items()},
+                indent=2,
+                default=_json,
+            )
+            + "\n",
+            out / "sensitivity.json",
+        )
+    write_rare_report(out)
+    return summary
+
+
+def _first_failure_table(runs) -> dict:
+    out = {}
+    for method in ("gradient", "cmaes"):
+        firsts = [r[method]["first_failure_simulations"] for r in runs]
+        found = [f for f in firsts if f is not None]
+        out[method] = {
+            "found": len(found),
+            "searches": len(firsts),
+            # a search that found none counts as worse than any that did (inf)
+            "median_first_failure": float(np.median([np.inf if f is None else f for f in firsts]))
+            if firsts
+            else None,
+            "best_margin": max(r[method]["best_margin"] for r in runs),
+        }
+    return out
+
+
+def _sensitivity(problem: MarginProblem, n: int, seed: int) -> dict:
+    groups = variate_groups(problem.distribution)
+    rng = np.random.default_rng(seed)
+    u = rng.random((n, problem.dimension))
+    out = {}
+    for key in ("margin", "ise_attitude"):
+        t0 = time.perf_counter()
+        value, grad, _ = problem.value_and_grad(u, output=key)
+        d = dgsm(grad, value, groups)
+        if key == "margin":
+            f = problem.margin
+        else:
+
+            def f(x):
+                return np.asarray(problem.metrics(x).ise_attitude)
+
+        sob = sobol_indices(_finite(f), problem.dimension, n, seed=seed, groups=groups)
+        out[key] = {"dgsm": d, "sobol": sob, "seconds": time.perf_counter() - t0}
+    return out
+
+
+def _finite(f):
+    def g(x):
+        y = np.asarray(f(x), dtype=np.float64)
+        return np.where(np.isfinite(y), y, np.nanmax(np.where(np.isfinite(y), y, np.nan)))
+
+    return g
+
+
+@dataclass(frozen=True)
+class RareEventConfig:
+    """A failure-probability estimate (`run_rare_event`).
+
+    Attributes:
+        controllers, out, distribution, seed: as for the Monte-Carlo study.
+        estimator: "crude", "is" or "ce".
+        n_cases: crude: the cases; is / ce: samples of the final importance-sampling stage.
+        n_per_stage, rho, max_stages, adapt_scale: cross-entropy settings.
+        search_budget: gradient simulations (HL-RF iterations, `design_point`) of the search
+            for the most likely failure that centres "is" and starts "ce" (0: none; the
+            nominal point).
+        attitude_limit [rad], altitude_limit [m]: failure limits (None: divergence limits).
+        rtol, atol, n_save: solver settings; batch: simulations per call.
+    """
+
+    controllers: dict[str, AbstractController]
+    out: Path
+    estimator: str = "ce"
+    distribution: Distribution = field(default_factory=default_distribution)
+    seed: int = 0
+    n_cases: int = 1024
+    n_per_stage: int = 512
+    rho: float = 0.1
+    max_stages: int = 10
+    adapt_scale: bool = False
+    search_budget: int = 8
+    attitude_limit: float | None = None
+    altitude_limit: float | None = None
+    rtol: float = 1e-6
+    atol: float = 1e-8
+    n_save: int = 401
+    batch: int = 256
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        d["controllers"] = {n: gains_to_dict(c) for n, c in self.controllers.items()}
+        d["distribution"] = self.distribution.to_dict()
+        d["out"] = str(self.out)
+        return d
+
+
+def run_rare_event(config: RareEventConfig, echo=print) -> dict:
+    """Estimate each controller's failure probability (module docstring); returns the summary
+    written to rare_event.json."""
+    import pyarrow as pa
+
+    c = config
+    if c.estimator not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {c.estimator!r}; allowed: {', '.join(ESTIMATORS)}.")
+    out = Path(c.out)
+    if (out / "run.json").exists():
+        raise ValueError(
+            f"{out} holds a crude Monte-Carlo study (run.json), whose results.parquet a "
+            "rare-event run would replace; give another --out folder."
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    summary: dict = {"estimator": c.estimator, "controllers": {}}
+    tables = []
+    for k, (name, controller) in enumerate(c.controllers.items()):
+        t0 = time.perf_counter()
+        problem = _problem(c, controller)
+        rng = np.random.default_rng([c.seed, k])
+        dim = problem.dimension
+
+        def g(z, problem=problem):
+            return problem.margin(to_unit(z))
+
+        adapt = adapted_variates(c.distribution)
+        mean = None
+        design = None
+        if c.estimator in ("is", "ce") and c.search_budget:
+            mean, history = design_point(problem, adapt, iterations=c.search_budget)
+            design = {"iterations": history}
+        before = problem.simulations + problem.gradient_simulations
+        if c.estimator == "crude":
+            est = crude(g, dim, c.n_cases, rng, batch=c.batch)
+        elif c.estimator == "is":
+            est = importance_sampling(
+                g, np.zeros(dim) if mean is None else mean, c.n_cases, rng, batch=c.batch
+            )
+        else:
+            est = cross_entropy(
+                g,
+                dim,
+                c.n_per_stage,
+                c.n_cases,
+                rng,
+                rho=c.rho,
+                max_stages=c.max_stages,
+                mean=mean,
+                adapt_scale=c.adapt_scale,
+                batch=c.batch,
+                adapt=adapt,
+            )
+        entry = est.to_dict()
+        entry["design_point"] = design
+        entry["search_simulations"] = before
+        entry["total_simulations"] = before + est.simulations
+        entry["seconds"] = time.perf_counter() - t0
+        summary["controllers"][name] = entry
+        if echo is not None:
+            lo, hi = est.ci95
+            echo(
+                f"{name}: P(failure) = {est.probability:.3e} (cv {est.cv:.3f}, 95 % "
+                f"[{lo:.3e}, {hi:.3e}]), {entry['total_simulations']} simulations "
+                f"({entry['seconds']:.1f} s)"
+            )
+        batch = cases_from_variates(c.distribution, to_unit(est.z))
+        cols = {"controller": np.array([name] * est.n_final, dtype=object)}
+        cols.update({kk: np.asarray(v, dtype=np.float64) for kk, v in batch.inputs.items()})
+        cols["failure_margin"] = est.margin
+        cols["log_weight"] = est.log_weight
+        tables.append(pa.table(cols))
+    atomic_write_table(pa.concat_tables(tables), out / "results.parquet")
+    meta = run_metadata(c.to_dict())
+    meta["rare_event"] = summary
+    atomic_write_text(json.dumps(meta, indent=2, default=_json) + "\n", out / "rare_event.json")
+    write_rare_report(out)
+    return summary
+
+
+def adapted_variates(distribution: Distribution) -> np.ndarray:
+    """The variates whose importance-sampling proposal is fitted: every one but the
+    turbulence phases (3 x n_frequencies of them, each changing little alone) and the fixed
+    ones."""
+    from ..montecarlo import fixed_variates
+
+    groups = np.array(variate_groups(distribution))
+    return (groups != "turbulence_phase") & ~fixed_variates(distribution)
+
+
+def _json(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, Estimate):
+        return x.to_dict()
+    raise TypeError(type(x).__name__)
+
+
+def _save(fig, path: Path) -> None:
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(buf.getvalue(), path)
+
+
+def write_rare_report(out) -> None:
+    """Write ``rare_report.md`` in ``out`` from the rare-failure files found there."""
+    from ..montecarlo import rare_sections
+
+    atomic_write_text(
+        "\n".join(["# Rare failures", "", *rare_sections(out)]) + "\n", Path(out) / "rare_report.md"
+    )
