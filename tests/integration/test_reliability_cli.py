@@ -122,9 +122,7 @@ def test_gains_file_runs_at_full_precision(tmp_path):
     ctrl = A.AFBL(gamma=data["gamma"], k=data["k"], lam=data["lambda"])
     # the reproduction flies the paper's vehicle with eq. 14's gyroscopic sign (its default)
     vehicle = A.QuadrotorParams(gyro_sign=A.EQ14_GYRO_SIGN)
-    direct = A.simulate(
-        ctrl, A.paper_scenario("uncertain", "step"), vehicle, rtol=1e-6, atol=1e-8
-    )
+    direct = A.simulate(ctrl, A.paper_scenario("uncertain", "step"), vehicle, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(
         doc["uncertain_step"]["afbl"]["ise_attitude"], float(direct.ise_attitude), rtol=1e-9
     )
