@@ -59,7 +59,7 @@ from afbl_jax.studies import tuning as T
 
 T_START = time.perf_counter()
 np.set_printoptions(precision=4, linewidth=100)
-DOCS = Path("..") / "docs" if Path("../docs").exists() else Path("docs")
+DOCS = Path(T.__file__).resolve().parents[3] / "docs"  # the repository's docs/
 
 # %% [markdown]
 # ## 1. Cases and the objective

@@ -97,7 +97,13 @@ def add_tuning_args(p) -> None:
     p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance")
     p.add_argument("--atol", type=float, default=1e-8, help="absolute tolerance")
     p.add_argument(
-        "--max-steps", type=int, default=4096, help="solver steps per run (per sample interval)"
+        "--max-steps", type=int, default=4096, help="solver steps per run (continuous control)"
+    )
+    p.add_argument(
+        "--max-steps-interval",
+        type=int,
+        default=64,
+        help="solver steps per sample interval (digital control; gradient memory grows with it)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -163,6 +169,7 @@ def config_from_args(args, seed_value: int = 0):
         rtol=args.rtol,
         atol=args.atol,
         max_steps=args.max_steps,
+        max_steps_interval=args.max_steps_interval,
     )
     return TuneConfig(
         controller=args.controller,

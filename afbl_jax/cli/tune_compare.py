@@ -37,7 +37,12 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..studies.tuning import compare_controllers, compare_optimizers, gradient_cost
+    from ..studies.tuning import (
+        compare_controllers,
+        compare_optimizers,
+        format_controllers,
+        gradient_cost,
+    )
 
     check_tuning_args(args)
     if args.study == "controllers" and args.heldout_seed in args.seeds:
@@ -59,8 +64,6 @@ def run(args) -> int:
         doc = compare_controllers(
             base, tuple(args.seeds), args.heldout_cases, args.heldout_seed, args.out, progress
         )
-        from ..studies.tuning._compare import format_controllers
-
         print(format_controllers(doc["heldout"]))
         print(f"wrote {args.out}/controllers.json, controllers.txt")
     else:

@@ -86,6 +86,7 @@ def test_batched_gradient_matches_central_differences_realistic(tuners, cases):
         assert abs(ad - fd) <= 1e-3 * abs(fd), (ad, fd)
 
 
+@pytest.mark.slow
 def test_batched_gradient_matches_single_case_path(tuners, cases):
     """Gradient of one case's ISE through simulate_batch (ensemble) == through `simulate`."""
     space = tuners["lbfgs"].space
@@ -324,3 +325,28 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
     args += ["--objective", "nominal", "--steps", "1", "--method", "adam", "--heldout-cases", "4"]
     assert main(args) == 2
     assert "no checkpoint" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_tune_cli_end_to_end(tmp_path):
+    from afbl_jax.cli import main
+
+    out = tmp_path / "tune"
+    args = ["tune", "--controller", "fbl", "--cases", "4", "--steps", "2", "--method", "lbfgs"]
+    args += ["--heldout-cases", "8", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    for f in (
+        "gains.json",
+        "history.csv",
+        "meta.json",
+        "evaluation.json",
+        "evaluation.txt",
+        "convergence.png",
+        "before_after.png",
+    ):
+        assert (out / f).exists(), f
+    assert load_gains(out / "gains.json").name == "fbl"
+    doc = json.loads((out / "evaluation.json").read_text())
+    assert doc["meta"]["config"]["seed"] == 0 and doc["meta"]["config"]["heldout_seed"] == 1
+    assert doc["heldout"]["tuned"]["n_cases"] == 8
+    assert set(doc["limits"]) >= {"effort_active", "saturation_active", "failures"}

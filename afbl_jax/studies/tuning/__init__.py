@@ -12,6 +12,7 @@ from ._cases import tuning_distribution as tuning_distribution
 from ._cases import without_noise as without_noise
 from ._compare import compare_controllers as compare_controllers
 from ._compare import compare_optimizers as compare_optimizers
+from ._compare import format_controllers as format_controllers
 from ._compare import gradient_cost as gradient_cost
 from ._objective import GainSpace as GainSpace
 from ._objective import ObjectiveConfig as ObjectiveConfig

@@ -165,8 +165,10 @@ class ObjectiveConfig:
         effort_limit: mean effort <= effort_limit x the paper's (inf: no limit).
         saturation_limit: mean saturation <= saturation_limit x max(paper's, floor).
         penalty: weight of the squared relative limit violations.
-        dtype: "float64" or "float32" solve; rtol, atol; max_steps per solve (per sample
-            interval with digital control).
+        dtype: "float64" or "float32" solve; rtol, atol; max_steps per solve without digital
+            control; max_steps_interval per sample interval with digital control (reverse mode
+            keeps a checkpoint buffer of this many steps for every interval: memory grows with
+            it; an interval of 2-5 ms takes a few steps).
     """
 
     objective: str = "robust"
@@ -184,6 +186,7 @@ class ObjectiveConfig:
     rtol: float = 1e-6
     atol: float = 1e-8
     max_steps: int = 4096
+    max_steps_interval: int = 64
 
     def __post_init__(self):
         if self.objective not in OBJECTIVES:
@@ -211,8 +214,10 @@ class ObjectiveConfig:
         for name in ("effort_limit", "saturation_limit"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0 (inf: no limit), got {getattr(self, name)}.")
-        if not (self.rtol > 0 and self.atol > 0 and self.max_steps > 0):
-            raise ValueError("rtol, atol and max_steps must be > 0.")
+        if not (
+            self.rtol > 0 and self.atol > 0 and self.max_steps > 0 and self.max_steps_interval > 0
+        ):
+            raise ValueError("rtol, atol, max_steps and max_steps_interval must be > 0.")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -266,19 +271,21 @@ def case_costs(
     local = jax.local_devices() if all_devices else jax.local_devices()[:1]
     # devices whose blocks hold whole sampler groups (their cases share one control rate)
     n_dev = max(d for d in range(1, len(local) + 1) if d == 1 or n % (GROUP_SIZE * d) == 0)
+    unmodeled = getattr(cases, "unmodeled", None)
+    digital = unmodeled is not None and unmodeled.max_samples > 0
     m = simulate_batch(
         controller,
         cases.scenario,
         cases.vehicle,
         cases.model,
-        unmodeled=getattr(cases, "unmodeled", None),
+        unmodeled=unmodeled,
         aerodynamics=cases.aerodynamics,
         strategy="ensemble",
         group_size=GROUP_SIZE,
         dtype=config.dtype,
         rtol=config.rtol,
         atol=config.atol,
-        max_steps=config.max_steps,
+        max_steps=config.max_steps_interval if digital else config.max_steps,
         devices=local[:n_dev],
     )
     m = jax.tree.map(lambda x: x.astype(float) if jnp.issubdtype(x.dtype, jnp.floating) else x, m)
