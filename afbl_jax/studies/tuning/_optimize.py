@@ -343,6 +343,8 @@ class Tuner:
         else:
             loss0, costs0 = self.loss_and_costs(z)
             history.append(self._row(0, z, loss0, 0.0, costs0))
+            if cfg.method == "cmaes":  # the starting point is the best seen so far
+                state["best_loss"] = float(loss0)
 
         def elapsed():
             return offset + time.perf_counter() - t_start

@@ -21,7 +21,7 @@ from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
 from ._objective import ObjectiveConfig, case_costs, limit_report
-from ._optimize import TuneConfig, Tuner, TuneResult
+from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult
 
 HELDOUT_CASES = 1024
 """Default number of fresh held-out cases."""
@@ -202,6 +202,8 @@ def run_tuning(
 ) -> TuningReport:
     """Tune, then evaluate paper vs tuned gains and write every output file to ``out``."""
     out = Path(out)
+    if resume and not (out / CHECKPOINT_STATE).exists():
+        raise ValueError(f"no checkpoint in {out} ({CHECKPOINT_STATE} missing).")
     out.mkdir(parents=True, exist_ok=True)
     heldout_seed = config.seed + 1 if heldout_seed is None else int(heldout_seed)
     if heldout_seed == config.seed and config.objective.objective == "robust":
