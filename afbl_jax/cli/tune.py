@@ -52,7 +52,7 @@ def add_tuning_args(p) -> None:
         help="Adam: learning-rate schedule",
     )
     p.add_argument("--clip-norm", type=float, default=1.0, help="Adam: gradient clipping norm")
-    p.add_argument("--sigma", type=float, default=0.5, help="CMA-ES: initial step (z units)")
+    p.add_argument("--sigma", type=float, default=0.2, help="CMA-ES: initial step (z units)")
     p.add_argument(
         "--population", type=int, default=None, help="CMA-ES population; default: 4 + 3 ln 12"
     )

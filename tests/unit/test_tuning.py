@@ -54,7 +54,7 @@ def cases():
 @pytest.fixture(scope="module")
 def tuners(cases):
     return {
-        m: Tuner(dataclasses.replace(CONFIG, method=m, population=6), cases=cases)
+        m: Tuner(dataclasses.replace(CONFIG, method=m, population=8, sigma=0.1), cases=cases)
         for m in ("lbfgs", "adam", "cmaes")
     }
 

@@ -88,7 +88,7 @@ class TuneConfig:
     learning_rate: float = 0.05
     schedule: str = "cosine"
     clip_norm: float = 1.0
-    sigma: float = 0.5
+    sigma: float = 0.2
     population: int | None = None
     lower: float = 0.1
     upper: float = 10.0
@@ -474,7 +474,8 @@ def save_checkpoint(out, config: TuneConfig, step: int, z, state, history) -> No
     out.mkdir(parents=True, exist_ok=True)
     if config.method == "cmaes":
         tmp = out / (CHECKPOINT_CMA + ".tmp")
-        tmp.write_bytes(pickle.dumps(state))
+        # cmaes.CMA drops its random generator when pickled: keep the generator's state too
+        tmp.write_bytes(pickle.dumps({**state, "rng": state["cma"]._rng.get_state()}))
         tmp.replace(out / CHECKPOINT_CMA)
     else:
         tmp = out / (CHECKPOINT_ARRAYS + ".tmp")
@@ -503,6 +504,7 @@ def load_checkpoint(out, config: TuneConfig, z, state):
         )
     if config.method == "cmaes":
         state = pickle.loads((out / CHECKPOINT_CMA).read_bytes())
+        state["cma"]._rng.set_state(state.pop("rng"))
         z = _unflat(state["best"], config.space().names)
     else:
         z, state = eqx.tree_deserialise_leaves(out / CHECKPOINT_ARRAYS, (z, state))
