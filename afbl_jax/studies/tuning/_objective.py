@@ -311,12 +311,17 @@ def reference_terms(costs: CaseCosts) -> Reference:
 
 
 def case_losses(costs: CaseCosts, ref: Reference, config: ObjectiveConfig) -> jax.Array:
-    """Per-case normalised loss L_i (module docstring)."""
+    """Per-case normalised loss L_i (module docstring). A failed case's terms (accumulated
+    until it failed) carry no gradient: their derivative says nothing about the gains' merit."""
+
+    def term(x):
+        return jnp.where(costs.failed, jax.lax.stop_gradient(x), x)
+
     return (
-        config.w_attitude * costs.ise_attitude / ref.ise_attitude
-        + config.w_altitude * costs.ise_altitude / ref.ise_altitude
-        + config.w_effort * costs.effort / ref.effort
-        + config.w_saturation * costs.saturation / ref.saturation
+        config.w_attitude * term(costs.ise_attitude) / ref.ise_attitude
+        + config.w_altitude * term(costs.ise_altitude) / ref.ise_altitude
+        + config.w_effort * term(costs.effort) / ref.effort
+        + config.w_saturation * term(costs.saturation) / ref.saturation
         + config.w_divergence * jnp.where(costs.failed, 1.0 + costs.missing, 0.0)
     )
 
