@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import sys
 
-from . import bench, falsify, montecarlo, reproduce, tune, unmodeled
+from . import bench, falsify, montecarlo, reproduce, tune, tune_compare, unmodeled
 from ._common import Parser, one_line
 
-SUBCOMMANDS = (reproduce, montecarlo, falsify, unmodeled, tune, bench)
+SUBCOMMANDS = (reproduce, montecarlo, falsify, unmodeled, tune, tune_compare, bench)
 
 
 def build_parser() -> Parser:

@@ -1,20 +1,15 @@
-"""``afbl tune``: gains by gradient descent through the simulation."""
+"""``afbl tune``: gains by L-BFGS / Adam / CMA-ES through the batched simulation."""
 
 from __future__ import annotations
+
+import math
 
 from .._validation import MAX_SEED
 from ._common import Formatter, UsageError, add_out, check_out, check_tolerances, seed
 
 
-def register(sub) -> None:
-    p = sub.add_parser(
-        "tune",
-        formatter_class=Formatter,
-        help="tune controller gains by gradient descent through the simulation",
-        description="Optimise log-gains with optax through the diffrax closed loop. Writes "
-        "OUT/gains.json, history.csv, convergence.png, before_after.png, meta.json, "
-        "evaluation.{txt,json} (held-out cases, paper vs tuned) and a checkpoint.",
-    )
+def add_tuning_args(p) -> None:
+    """Flags shared by `afbl tune` and `afbl tune-compare` (objective, limits, method)."""
     p.add_argument(
         "--controller", default="afbl", choices=["afbl", "fbl"], help="controller to tune"
     )
@@ -22,7 +17,7 @@ def register(sub) -> None:
         "--objective",
         default="robust",
         choices=["nominal", "robust"],
-        help="nominal: the canonical scenarios; robust: sampled Monte-Carlo cases",
+        help="nominal: the canonical scenarios; robust: sampled cases with unmodeled dynamics",
     )
     p.add_argument(
         "--risk",
@@ -34,40 +29,62 @@ def register(sub) -> None:
         "--cvar-level", type=float, default=0.9, help="CVaR level alpha (mean of the worst 1-alpha)"
     )
     p.add_argument("--cases", type=int, default=64, help="training cases (robust)")
-    p.add_argument("--steps", type=int, default=100, help="optimiser steps")
+    p.add_argument("--steps", type=int, default=100, help="iterations (steps; CMA-ES: generations)")
     p.add_argument(
-        "--seed", type=seed, default=0, help="seed of the training cases, in [0, 2^63 - 1]"
+        "--method",
+        "--optimizer",
+        dest="method",
+        default="lbfgs",
+        choices=["lbfgs", "adam", "cmaes"],
+        help="optimiser: L-BFGS with zoom line search, Adam, or CMA-ES (gradient-free)",
     )
     p.add_argument(
-        "--heldout-cases", type=int, default=None, help="held-out cases; default: --cases"
-    )
-    p.add_argument(
-        "--heldout-seed",
-        type=seed,
+        "--time-budget",
+        type=float,
         default=None,
-        help="seed of the held-out cases; default: seed + 1",
+        help="wall-time budget of the optimisation [s] (after compiling); default: none",
     )
-    add_out(p)
-    p.add_argument("--optimizer", default="adam", choices=["adam", "sgd"], help="optax optimiser")
-    p.add_argument("--lr", type=float, default=0.05, help="peak step in log-gain units")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam: peak step (z units)")
     p.add_argument(
         "--schedule",
         default="cosine",
         choices=["cosine", "constant"],
-        help="learning-rate schedule",
+        help="Adam: learning-rate schedule",
+    )
+    p.add_argument("--clip-norm", type=float, default=1.0, help="Adam: gradient clipping norm")
+    p.add_argument("--sigma", type=float, default=0.2, help="CMA-ES: initial step (z units)")
+    p.add_argument(
+        "--population", type=int, default=None, help="CMA-ES population; default: 4 + 3 ln 12"
     )
     p.add_argument(
-        "--clip-norm", type=float, default=1.0, help="global-norm gradient clipping threshold"
+        "--w-attitude", type=float, default=1.0, help="weight of ISE_att / paper's ISE_att"
     )
     p.add_argument(
-        "--w-altitude", type=float, default=1.0, help="weight of the altitude ISE in the objective"
+        "--w-altitude", type=float, default=1.0, help="weight of ISE_alt / paper's ISE_alt"
     )
-    p.add_argument("--w-effort", type=float, default=1e-4, help="weight of the control effort")
+    p.add_argument("--w-effort", type=float, default=0.0, help="weight of effort / paper's")
+    p.add_argument("--w-saturation", type=float, default=0.0, help="weight of saturation / paper's")
     p.add_argument(
-        "--w-saturation", type=float, default=1.0, help="weight of the rotor-saturation penalty"
+        "--w-divergence", type=float, default=10.0, help="objective added per failed case"
     )
     p.add_argument(
-        "--w-divergence", type=float, default=1.0, help="weight of the divergence penalty"
+        "--effort-limit",
+        type=float,
+        default=1.0,
+        help="limit: mean effort <= this x the paper's gains' (inf: none)",
+    )
+    p.add_argument(
+        "--saturation-limit",
+        type=float,
+        default=1.0,
+        help="limit: mean saturation <= this x the paper's gains' (floored at 1e-4 s)",
+    )
+    p.add_argument("--penalty", type=float, default=100.0, help="weight of limit violations")
+    p.add_argument(
+        "--dtype",
+        default="float64",
+        choices=["float64", "float32"],
+        help="precision of the training solves",
     )
     p.add_argument("--lower", type=float, default=0.1, help="gain box: lower x paper gains")
     p.add_argument("--upper", type=float, default=10.0, help="gain box: upper x paper gains")
@@ -79,54 +96,107 @@ def register(sub) -> None:
     )
     p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance")
     p.add_argument("--atol", type=float, default=1e-8, help="absolute tolerance")
-    p.add_argument("--max-steps", type=int, default=8192, help="solver step limit per run")
     p.add_argument(
-        "--checkpoint-every", type=int, default=10, help="steps between checkpoints in OUT"
+        "--max-steps", type=int, default=4096, help="solver steps per run (continuous control)"
+    )
+    p.add_argument(
+        "--max-steps-interval",
+        type=int,
+        default=64,
+        help="solver steps per sample interval (digital control; gradient memory grows with it)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "tune",
+        formatter_class=Formatter,
+        help="tune controller gains (L-BFGS, Adam or CMA-ES through the simulation)",
+        description="Optimise the gains on realistic training cases (full plant, motor lag, "
+        "digital control; noise off) with a normalised objective and limits. Writes "
+        "OUT/gains.json, history.csv, convergence.png, before_after.png, meta.json, "
+        "evaluation.{txt,json} (held-out cases with noise: paper vs tuned) and a checkpoint.",
+    )
+    add_tuning_args(p)
+    p.add_argument(
+        "--seed", type=seed, default=0, help="seed of the training cases, in [0, 2^63 - 1]"
+    )
+    p.add_argument("--heldout-cases", type=int, default=1024, help="fresh held-out cases")
+    p.add_argument(
+        "--heldout-seed",
+        type=seed,
+        default=None,
+        help="seed of the held-out cases; default: seed + 1",
+    )
+    add_out(p)
+    p.add_argument(
+        "--checkpoint-every", type=int, default=10, help="iterations between checkpoints in OUT"
     )
     p.add_argument("--resume", action="store_true", help="continue from OUT's checkpoint")
     p.add_argument(
         "--no-figures", action="store_true", help="skip convergence.png and before_after.png"
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
-def config_from_args(args):
+def check_tuning_args(args) -> None:
+    check_tolerances(args)
+    if args.time_budget is not None and not (
+        math.isfinite(args.time_budget) and args.time_budget > 0
+    ):
+        raise UsageError(f"--time-budget must be a number of seconds > 0, got {args.time_budget}.")
+    if args.cases < 1 or args.steps < 0:
+        raise UsageError(f"need --cases >= 1 and --steps >= 0, got {args.cases}, {args.steps}.")
+
+
+def config_from_args(args, seed_value: int = 0):
     from ..studies.tuning import ObjectiveConfig, TuneConfig
 
     ocfg = ObjectiveConfig(
         objective=args.objective,
         risk=args.risk,
         cvar_level=args.cvar_level,
+        w_attitude=args.w_attitude,
         w_altitude=args.w_altitude,
         w_effort=args.w_effort,
         w_saturation=args.w_saturation,
         w_divergence=args.w_divergence,
+        effort_limit=args.effort_limit,
+        saturation_limit=args.saturation_limit,
+        penalty=args.penalty,
+        dtype=args.dtype,
         rtol=args.rtol,
         atol=args.atol,
         max_steps=args.max_steps,
+        max_steps_interval=args.max_steps_interval,
     )
     return TuneConfig(
         controller=args.controller,
         objective=ocfg,
         n_cases=args.cases,
-        seed=args.seed,
+        seed=getattr(args, "seed", seed_value),
         steps=args.steps,
-        optimizer=args.optimizer,
+        method=args.method,
+        time_budget=args.time_budget,
         learning_rate=args.lr,
         schedule=args.schedule,
         clip_norm=args.clip_norm,
+        sigma=args.sigma,
+        population=args.population,
         lower=args.lower,
         upper=args.upper,
         thrust_to_weight=args.thrust_to_weight or None,
-        checkpoint_every=args.checkpoint_every,
+        checkpoint_every=getattr(args, "checkpoint_every", 0),
     )
 
 
 def run(args) -> int:
     from ..studies.tuning import run_tuning
 
-    check_tolerances(args)
+    check_tuning_args(args)
+    if args.heldout_cases < 1:
+        raise UsageError(f"--heldout-cases must be >= 1, got {args.heldout_cases}.")
     if args.heldout_seed is None and args.seed == MAX_SEED:
         raise UsageError(
             f"--seed {args.seed} leaves no default held-out seed (seed + 1 > 2^63 - 1); "

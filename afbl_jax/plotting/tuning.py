@@ -18,11 +18,14 @@ def plot_convergence(history: list[dict], config, path: str | Path) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     axes[0].plot(steps, [h["loss"] for h in history], color="k")
     axes[0].set_yscale("log")
-    axes[0].set_title(f"{config.objective.objective} objective ({config.controller})")
-    axes[0].set_xlabel("step")
+    axes[0].set_title(
+        f"{config.objective.objective} objective ({config.controller}, {config.method})"
+    )
+    axes[0].set_ylabel("objective [-]")
+    axes[0].set_xlabel("iteration")
     axes[1].plot(steps, [h["grad_norm"] for h in history], color="tab:purple")
     axes[1].set_yscale("log")
-    axes[1].set_title("gradient norm (log-gains)")
+    axes[1].set_title("gradient norm (z)")
     axes[1].set_xlabel("step")
     space = config.space()
     for name in space.names:
@@ -73,5 +76,37 @@ def plot_before_after(runs: dict, omega_max: float, path: str | Path) -> Path:
     fig.suptitle("Paper gains vs tuned gains (canonical scenarios, rotor limit on)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_loss_vs_time(runs: dict, path: str | Path, title: str = "tuning") -> Path:
+    """Objective (normalised: 1 per term at the paper's gains) against wall time [s] for each
+    method (colour) and seed (line style); ``runs``: {method: {seed: history rows}}."""
+    import matplotlib.pyplot as plt
+
+    colours = {"lbfgs": "tab:blue", "adam": "tab:orange", "cmaes": "tab:green"}
+    styles = ("-", "--", ":", "-.")
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for method, per_seed in runs.items():
+        for i, (seed, hist) in enumerate(sorted(per_seed.items())):
+            t = [h["time_s"] for h in hist]
+            best = np.minimum.accumulate([h["loss"] for h in hist])
+            ax.plot(
+                t,
+                best,
+                color=colours.get(method),
+                ls=styles[i % len(styles)],
+                drawstyle="steps-post",
+                label=f"{method} seed {seed}",
+            )
+    ax.set_xlabel("wall time after compilation [s]")
+    ax.set_ylabel("training objective, best so far [-]")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)

@@ -34,6 +34,7 @@ def test_every_study_script_is_tested():
         "reproduce_paper.py",
         "montecarlo_robustness.py",
         "tune_gains.py",
+        "tune_compare.py",
         "unmodeled_dynamics.py",
         "benchmark.py",
         "rare_failures.py",
@@ -111,6 +112,12 @@ def test_tune_script(tmp_path):
         "nominal",
         "--steps",
         "1",
+        "--method",
+        "cmaes",
+        "--population",
+        "4",
+        "--heldout-cases",
+        "8",
         "--out",
         str(tmp_path),
         "--no-figures",
@@ -123,6 +130,42 @@ def test_tune_script(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     gains = json.loads((tmp_path / "gains.json").read_text())
     assert gains["controller"] == "afbl" and len(gains["lambda"]) == 4
+    doc = json.loads((tmp_path / "evaluation.json").read_text())
+    paper, tuned = doc["heldout"]["paper"], doc["heldout"]["tuned"]
+    assert paper["n_cases"] == 8 and set(paper["ise"]) >= {"p50", "p90", "p99", "cvar90"}
+    assert tuned["failure_wilson95"][0] <= tuned["failure_rate"] <= tuned["failure_wilson95"][1]
+
+
+def test_tune_compare_script(tmp_path):
+    r = _run(
+        "tune_compare.py",
+        "--study",
+        "optimizers",
+        "--methods",
+        "cmaes",
+        "--seeds",
+        "0",
+        "--objective",
+        "nominal",
+        "--population",
+        "4",
+        "--steps",
+        "2",
+        "--time-budget",
+        "600",
+        "--rtol",
+        "1e-5",
+        "--atol",
+        "1e-7",
+        "--no-progress",
+        "--out",
+        str(tmp_path),
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "optimizers.json").read_text())
+    hist = doc["runs"]["cmaes"]["0"]
+    assert len(hist) == 3 and hist[-1]["loss"] <= hist[0]["loss"]
+    assert (tmp_path / "loss_vs_time.png").exists()
 
 
 def test_benchmark_script(tmp_path):

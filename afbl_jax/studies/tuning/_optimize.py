@@ -1,10 +1,31 @@
-"""The tuning loop: optax over log-gains, non-finite-gradient guard, checkpoints, resume."""
+"""The tuning loop: L-BFGS (default), Adam or CMA-ES over the unconstrained gain vector z
+(`GainSpace.log_gains`), a wall-time budget, checkpoints and exact resume.
+
+- ``lbfgs``: `optax.lbfgs` with its zoom line search (strong Wolfe conditions) on the fixed
+  training set; the next iteration starts from the objective and gradient the line search left
+  in the state (as `optax.value_and_grad_from_state` does), so an accepted first trial costs one
+  value-and-gradient per iteration.
+- ``adam``: `optax.adam` with a cosine or constant schedule, global-norm clipping and
+  `optax.zero_nans`.
+- ``cmaes``: `cmaes.CMA` (the ``cmaes`` package), the whole population evaluated in ONE
+  `afbl_jax.simulate_batch` call (controllers batched over candidates x cases); the current
+  gains are the best candidate seen so far.
+
+Every method stops after ``steps`` iterations (generations for CMA-ES) or before an iteration
+that would end past ``time_budget`` seconds (estimated from the last iteration). The clock
+starts after compiling one iteration (`Tuner.warmup`, timed separately as ``compile_s``) and
+continues across a resume. The history has
+one row per iteration: the objective at the gains held after it, the wall time, the gains.
+"""
 
 from __future__ import annotations
 
-import functools
+import copy
+import dataclasses
 import json
 import math
+import pickle
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,12 +38,23 @@ import optax
 
 from ...model import AbstractController
 from ._cases import DEFAULT_THRUST_TO_WEIGHT
-from ._objective import GainSpace, ObjectiveConfig, cases_for, objective
+from ._objective import (
+    GainSpace,
+    ObjectiveConfig,
+    case_costs,
+    cases_for,
+    objective,
+    objective_of_costs,
+    reference_terms,
+    tile_cases,
+)
 
-OPTIMIZERS = ("adam", "sgd")
+METHODS = ("lbfgs", "adam", "cmaes")
 SCHEDULES = ("cosine", "constant")
 CHECKPOINT_ARRAYS = "checkpoint.eqx"
+CHECKPOINT_CMA = "checkpoint_cma.pkl"
 CHECKPOINT_STATE = "checkpoint.json"
+CHANNELS = ("phi", "theta", "psi", "z")
 
 
 @dataclass(frozen=True)
@@ -31,16 +63,19 @@ class TuneConfig:
 
     Attributes:
         controller: "afbl" or "fbl".
-        objective: the `ObjectiveConfig` (objective, risk, weights, solver tolerances).
+        objective: the `ObjectiveConfig` (objective, risk, weights, limits, solver settings).
         n_cases: training cases for the robust objective (ignored for nominal: the canonical 4).
-        seed: seed of the training cases.
-        steps: optimiser steps.
-        optimizer: "adam" (default) or "sgd"; learning_rate: peak step size in log-gain units;
-        schedule: "cosine" (decay to 10 % over ``steps``, default) or "constant".
-        clip_norm: global-norm gradient clipping threshold.
+        seed: seed of the training cases (and of CMA-ES's sampling).
+        steps: iterations (L-BFGS / Adam steps, CMA-ES generations).
+        method: "lbfgs" (default), "adam" or "cmaes".
+        time_budget: wall-time budget [s] of the optimisation (None: no budget).
+        learning_rate, schedule, clip_norm: Adam (peak step in z units; "cosine" decays to
+            10 % over ``steps``).
+        sigma, population: CMA-ES initial step size (z units) and population (None: the
+            library's default 4 + 3 ln 12 = 11).
         lower, upper: gain box as factors of the paper's gains.
         thrust_to_weight: rotor limit (max thrust / nominal weight); None = unlimited.
-        checkpoint_every: write a checkpoint every this many steps (0: never).
+        checkpoint_every: write a checkpoint every this many iterations (0: never).
     """
 
     controller: str = "afbl"
@@ -48,20 +83,21 @@ class TuneConfig:
     n_cases: int = 64
     seed: int = 0
     steps: int = 100
-    optimizer: str = "adam"
+    method: str = "lbfgs"
+    time_budget: float | None = None
     learning_rate: float = 0.05
     schedule: str = "cosine"
     clip_norm: float = 1.0
+    sigma: float = 0.2
+    population: int | None = None
     lower: float = 0.1
     upper: float = 10.0
     thrust_to_weight: float | None = DEFAULT_THRUST_TO_WEIGHT
     checkpoint_every: int = 10
 
     def __post_init__(self):
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(
-                f"unknown optimizer {self.optimizer!r}; allowed: {', '.join(OPTIMIZERS)}."
-            )
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; allowed: {', '.join(METHODS)}.")
         if self.schedule not in SCHEDULES:
             raise ValueError(
                 f"unknown schedule {self.schedule!r}; allowed: {', '.join(SCHEDULES)}."
@@ -71,8 +107,12 @@ class TuneConfig:
                 "need steps >= 0, n_cases >= 1, checkpoint_every >= 0; got "
                 f"{self.steps}, {self.n_cases}, {self.checkpoint_every}."
             )
-        if not (self.learning_rate > 0 and self.clip_norm > 0):
-            raise ValueError("learning_rate and clip_norm must be > 0.")
+        if not (self.learning_rate > 0 and self.clip_norm > 0 and self.sigma > 0):
+            raise ValueError("learning_rate, clip_norm and sigma must be > 0.")
+        if self.population is not None and self.population < 2:
+            raise ValueError(f"population must be >= 2, got {self.population}.")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time_budget must be > 0 seconds, got {self.time_budget}.")
         if self.thrust_to_weight is not None and not self.thrust_to_weight > 1.0:
             raise ValueError(
                 f"thrust_to_weight must be > 1 (or None), got {self.thrust_to_weight}."
@@ -81,6 +121,34 @@ class TuneConfig:
 
     def space(self) -> GainSpace:
         return GainSpace(self.controller, lower=self.lower, upper=self.upper)
+
+    def objective_key(self) -> TuneConfig:
+        """The fields the objective's compiled code depends on (controller, box, objective,
+        rotor limit): runs differing only in seed, method or budget share one compilation."""
+        return TuneConfig(
+            controller=self.controller,
+            objective=self.objective,
+            lower=self.lower,
+            upper=self.upper,
+            thrust_to_weight=self.thrust_to_weight,
+            n_cases=1,
+            steps=0,
+            checkpoint_every=0,
+        )
+
+    def step_key(self) -> TuneConfig:
+        """`objective_key` plus the fields of the optax update (method, Adam's schedule)."""
+        key = self.objective_key()
+        if self.method == "adam":
+            return dataclasses.replace(
+                key,
+                method="adam",
+                steps=self.steps,
+                learning_rate=self.learning_rate,
+                schedule=self.schedule,
+                clip_norm=self.clip_norm,
+            )
+        return key
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -93,24 +161,29 @@ class TuneConfig:
 
 
 def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
-    """zero_nans -> global-norm clipping -> Adam/SGD with the schedule."""
+    """The optax transformation of a gradient method (L-BFGS, or Adam with guards)."""
+    if config.method == "lbfgs":
+        return optax.lbfgs()
     if config.schedule == "cosine":
         lr = optax.cosine_decay_schedule(config.learning_rate, max(config.steps, 1), alpha=0.1)
     else:
         lr = optax.constant_schedule(config.learning_rate)
-    base = optax.adam(lr) if config.optimizer == "adam" else optax.sgd(lr)
-    return optax.chain(optax.zero_nans(), optax.clip_by_global_norm(config.clip_norm), base)
+    return optax.chain(
+        optax.zero_nans(), optax.clip_by_global_norm(config.clip_norm), optax.adam(lr)
+    )
 
 
 @dataclass
 class TuneResult:
-    """Outcome of `tune`: final log-gains, controller, per-step history, config."""
+    """Outcome of `tune`: final log-gains, controller, per-iteration history, config."""
 
     params: dict
     controller: AbstractController
     history: list[dict]
     config: TuneConfig
-    opt_state: Any = None
+    reference: Any = None
+    costs: Any = None
+    compile_s: float = 0.0
 
     @property
     def initial_loss(self) -> float:
@@ -121,44 +194,126 @@ class TuneResult:
         return self.history[-1]["loss"]
 
 
-class Tuner:
-    """Holds the jitted loss/gradient and update functions for one `TuneConfig` (build once,
-    reuse: no retracing across steps or across `run` calls)."""
+def _flat(z: dict, names) -> np.ndarray:
+    return np.concatenate([np.asarray(z[n], dtype=float) for n in names])
 
-    def __init__(self, config: TuneConfig, cases=None):
+
+def _unflat(x, names) -> dict:
+    x = jnp.asarray(x)
+    return {n: x[..., 4 * i : 4 * i + 4] for i, n in enumerate(names)}
+
+
+class Tuner:
+    """Holds the jitted objective, gradient and step functions for one `TuneConfig` (build
+    once, reuse: no retracing across iterations or across `run` calls)."""
+
+    def __init__(self, config: TuneConfig, cases=None, distribution=None):
         self.config = config
         self.space = config.space()
         self.cases = (
             cases
             if cases is not None
-            else cases_for(config.objective, config.n_cases, config.seed, config.thrust_to_weight)
+            else cases_for(
+                config.objective,
+                config.n_cases,
+                config.seed,
+                config.thrust_to_weight,
+                distribution=distribution,
+            )
         )
-        self.optimizer = make_optimizer(config)
-        self.value_and_grad = functools.partial(_value_and_grad, config)
-        self.update = functools.partial(_update, config)
+        self.reference_costs = _costs(config.objective_key(), self.space.init_params(), self.cases)
+        self.reference = reference_terms(self.reference_costs)
+        self.optimizer = None if config.method == "cmaes" else make_optimizer(config)
 
-    def init(self) -> tuple[dict, Any]:
-        params = self.space.init_params()
-        return params, self.optimizer.init(params)
+    # -- objective in z ------------------------------------------------------------------
+    def loss_and_costs(self, z: dict):
+        """(objective, `CaseCosts`) at z (forward only)."""
+        costs = _costs(self.config.objective_key(), self.space.log_gains(z), self.cases)
+        return objective_of_costs(costs, self.reference, self.config.objective), costs
 
-    def _row(self, step, params, loss, costs, grad_norm, nonfinite) -> dict:
+    def value_and_grad(self, z: dict):
+        """((objective, CaseCosts), d objective / dz)."""
+        return _value_and_grad(self.config.objective_key(), z, self.cases, self.reference)
+
+    def population_losses(self, zs: np.ndarray) -> np.ndarray:
+        """Objective of each row of ``zs`` (P, 12), all candidates in one batched call."""
+        return np.asarray(
+            _population(self.config.objective_key(), jnp.asarray(zs), self.cases, self.reference),
+            dtype=float,
+        )
+
+    # -- state ---------------------------------------------------------------------------
+    def init(self):
+        z = self.space.init_z()
+        if self.config.method == "cmaes":
+            from cmaes import CMA
+
+            x0 = _flat(z, self.space.names)
+            cma = CMA(
+                mean=x0,
+                sigma=self.config.sigma,
+                seed=int(self.config.seed % (2**32)),
+                population_size=self.config.population,
+            )
+            return z, {"cma": cma, "best": x0, "best_loss": math.inf}
+        return z, self.optimizer.init(z)
+
+    def _row(self, step, z, loss, t, costs=None, grad_norm=math.nan, evaluations=0) -> dict:
         row = {
             "step": step,
+            "time_s": float(t),
+            "evaluations": int(evaluations),
             "loss": float(loss),
             "grad_norm": float(grad_norm),
-            "nonfinite_grad": int(nonfinite),
-            "ise_attitude": float(np.mean(costs.ise_attitude)),
-            "ise_altitude": float(np.mean(costs.ise_altitude)),
-            "effort": float(np.mean(costs.effort)),
-            "saturation": float(np.mean(costs.saturation)),
-            "failed": int(np.sum(costs.failed)),
         }
+        for key in ("ise_attitude", "ise_altitude", "effort", "saturation"):
+            row[key] = math.nan if costs is None else float(np.mean(getattr(costs, key)))
+        row["failed"] = -1 if costs is None else int(np.sum(costs.failed))
+        params = self.space.log_gains(z)
         for name in self.space.names:
-            for ch, v in zip(
-                ("phi", "theta", "psi", "z"), np.exp(np.asarray(params[name])), strict=True
-            ):
+            for ch, v in zip(CHANNELS, np.exp(np.asarray(params[name])), strict=True):
                 row[f"{name}_{ch}"] = float(v)
         return row
+
+    def _iterate(self, z, state):
+        """One iteration: (new z, new state, loss at new z or None, grad norm, evaluations)."""
+        cfg = self.config
+        if cfg.method == "cmaes":
+            cma = state["cma"]
+            xs = np.stack([cma.ask() for _ in range(cma.population_size)])
+            losses = self.population_losses(xs)
+            # non-finite objectives rank last
+            ranked = np.where(np.isfinite(losses), losses, np.finfo(float).max)
+            cma.tell(list(zip(xs, ranked, strict=True)))
+            i = int(np.argmin(ranked))
+            if ranked[i] < state["best_loss"]:
+                state["best"], state["best_loss"] = xs[i], float(ranked[i])
+            z = _unflat(state["best"], self.space.names)
+            return z, state, state["best_loss"], math.nan, len(xs)
+        if cfg.method == "lbfgs":
+            if not np.isfinite(float(optax.tree_utils.tree_get(state, "value"))):
+                (value, _), grad = self.value_and_grad(z)  # first iteration
+            else:
+                value, grad = lbfgs_value_grad(state)
+            z, state = _lbfgs_step(
+                cfg.objective_key(), z, state, value, grad, self.cases, self.reference
+            )
+            gnorm = optax.tree_utils.tree_norm(grad)
+            return z, state, None, float(gnorm), 1
+        (value, _), grads = self.value_and_grad(z)
+        z, state, gnorm = _adam_step(cfg.step_key(), z, state, grads)
+        return z, state, None, float(gnorm), 1
+
+    def warmup(self) -> float:
+        """Compile one iteration (on a copy of the initial state, discarded); returns the
+        seconds it took. `run` calls it before starting its clock."""
+        t = time.perf_counter()
+        z, state = self.init()
+        z, state, *_ = self._iterate(z, copy.deepcopy(state))
+        jax.block_until_ready(z)
+        if self.config.method == "lbfgs":
+            float(optax.tree_utils.tree_get(state, "value"))
+        return time.perf_counter() - t
 
     def run(
         self,
@@ -168,78 +323,141 @@ class Tuner:
         stop_after: int | None = None,
         log=print,
     ) -> TuneResult:
-        """Optimise for ``config.steps`` steps (or stop after ``stop_after`` steps, for tests
-        of resuming). Checkpoints go to ``out`` every ``checkpoint_every`` steps; ``resume``
-        continues from ``out``'s checkpoint (same config required) with the same result as an
-        uninterrupted run. The history has one row per step (loss and gradient at the gains of
-        that step) plus a last row for the final gains."""
+        """Optimise for ``config.steps`` iterations or until the time budget is spent (or stop
+        after ``stop_after`` iterations, for tests of resuming). Checkpoints go to ``out`` every
+        ``checkpoint_every`` iterations; ``resume`` continues from ``out``'s checkpoint (same
+        config required) with the same result as an uninterrupted run. History row 0 is the
+        starting point (the paper's gains), row i the gains after iteration i."""
         cfg = self.config
-        params, opt_state = self.init()
+        compile_s = self.warmup() if cfg.steps > 0 else 0.0
+        z, state = self.init()
+        t_start = time.perf_counter()
         history: list[dict] = []
-        start = 0
+        start, offset = 0, 0.0
         if resume:
             if out is None:
                 raise ValueError("resume needs the output folder holding the checkpoint.")
-            start, params, opt_state, history = load_checkpoint(out, cfg, params, opt_state)
-            log(f"resumed from {Path(out) / CHECKPOINT_STATE} at step {start}")
+            start, z, state, history = load_checkpoint(out, cfg, z, state)
+            offset = history[-1]["time_s"] if history else 0.0
+            log(f"resumed from {Path(out) / CHECKPOINT_STATE} at iteration {start}")
+        else:
+            loss0, costs0 = self.loss_and_costs(z)
+            history.append(self._row(0, z, loss0, 0.0, costs0))
+            if cfg.method == "cmaes":  # the starting point is the best seen so far
+                state["best_loss"] = float(loss0)
+
+        def elapsed():
+            return offset + time.perf_counter() - t_start
+
         end = cfg.steps if stop_after is None else min(cfg.steps, start + stop_after)
         bar = None
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=cfg.steps, initial=start, desc="tune", unit="step")
-        for step in range(start, end):
-            (loss, costs), grads = self.value_and_grad(params, self.cases)
-            new_params, opt_state, gnorm, nonfinite = self.update(params, opt_state, grads)
-            row = self._row(step, params, loss, costs, gnorm, nonfinite)
-            history.append(row)
-            if row["nonfinite_grad"]:
+            bar = tqdm(total=cfg.steps, initial=start, desc=f"tune ({cfg.method})", unit="it")
+        last = 0.0
+        for it in range(start, end):
+            if cfg.time_budget is not None and elapsed() + last > cfg.time_budget:
                 log(
-                    f"step {step}: {row['nonfinite_grad']} non-finite gradient entries "
-                    "zeroed (optax.zero_nans) before the update"
+                    f"time budget {cfg.time_budget:g} s: stopped after {it} iterations "
+                    f"({elapsed():.1f} s)"
                 )
+                break
+            t_it = time.perf_counter()
+            z, state, loss, gnorm, nev = self._iterate(z, state)
+            costs = None
+            if loss is None:
+                if cfg.method == "lbfgs":
+                    loss = float(lbfgs_value_grad(state)[0])
+                else:
+                    loss, costs = self.loss_and_costs(z)
+            last = time.perf_counter() - t_it
+            row = self._row(it + 1, z, loss, elapsed(), costs, gnorm, nev)
+            history.append(row)
             if not math.isfinite(row["loss"]):
-                log(f"step {step}: non-finite loss {row['loss']}")
-            params = new_params
+                log(f"iteration {it + 1}: non-finite loss {row['loss']}")
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{row['loss']:.4e}", gnorm=f"{row['grad_norm']:.2e}")
-            done = step + 1
+                bar.set_postfix(loss=f"{row['loss']:.4e}")
+            done = it + 1
             if (
                 out is not None
                 and cfg.checkpoint_every
                 and (done % cfg.checkpoint_every == 0 or done == end)
             ):
-                save_checkpoint(out, cfg, done, params, opt_state, history)
+                save_checkpoint(out, cfg, done, z, state, history)
         if bar is not None:
             bar.close()
-        if end == cfg.steps:
-            (loss, costs), grads = self.value_and_grad(params, self.cases)
-            _, _, gnorm, nonfinite = self.update(params, opt_state, grads)
-            history.append(self._row(cfg.steps, params, loss, costs, gnorm, nonfinite))
-        return TuneResult(params, self.space.controller_of(params), history, cfg, opt_state)
+        params = self.space.log_gains(z)
+        loss, costs = self.loss_and_costs(z)
+        history[-1].update(self._row(history[-1]["step"], z, loss, history[-1]["time_s"], costs))
+        return TuneResult(
+            params,
+            self.space.controller_of(params),
+            history,
+            cfg,
+            self.reference,
+            costs,
+            compile_s,
+        )
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _value_and_grad(config: TuneConfig, params, cases):
-    """((objective, CaseCosts), d objective / d log-gains); compiled once per config (a frozen,
-    hashable dataclass) and case-batch shape, shared by every `Tuner` with that config."""
+def _objective_z(z, config: TuneConfig, cases, ref):
     space = config.space()
-    return jax.value_and_grad(objective, has_aux=True)(params, space, cases, config.objective)
+    return objective(space.log_gains(z), space, cases, config.objective, ref)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _update(config: TuneConfig, params, opt_state, grads):
-    """One optimiser step: count non-finite gradient entries (logged by the caller), turn them
-    into NaN so `optax.zero_nans` zeroes them, clip, Adam/SGD, project onto the gain box."""
-    lo, hi = config.space().bounds()
+@eqx.filter_jit
+def _costs(config: TuneConfig, params, cases):
+    return case_costs(config.space().controller_of(params), cases, config.objective)
+
+
+@eqx.filter_jit
+def _value_and_grad(config: TuneConfig, z, cases, ref):
+    """((objective, CaseCosts), d objective / dz); compiled once per config and batch shape."""
+    return jax.value_and_grad(_objective_z, has_aux=True)(z, config, cases, ref)
+
+
+@eqx.filter_jit
+def _adam_step(config: TuneConfig, z, opt_state, grads):
     leaves = jax.tree.leaves(grads)
-    nonfinite = sum(jnp.sum(~jnp.isfinite(g)) for g in leaves)
     grad_norm = jnp.sqrt(sum(jnp.sum(jnp.where(jnp.isfinite(g), g, 0.0) ** 2) for g in leaves))
     grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, jnp.nan), grads)
-    updates, opt_state = make_optimizer(config).update(grads, opt_state, params)
-    params = optax.projections.projection_box(optax.apply_updates(params, updates), lo, hi)
-    return params, opt_state, grad_norm, nonfinite
+    updates, opt_state = make_optimizer(config).update(grads, opt_state, z)
+    return optax.apply_updates(z, updates), opt_state, grad_norm
+
+
+@eqx.filter_jit
+def _lbfgs_step(config: TuneConfig, z, opt_state, value, grad, cases, ref):
+    """One L-BFGS step with the zoom line search from (value, grad) at z; the line search
+    leaves the objective and gradient at the new z in the state (`lbfgs_value_grad`)."""
+
+    def value_fn(x):
+        return _objective_z(x, config, cases, ref)[0]
+
+    updates, opt_state = make_optimizer(config).update(
+        grad, opt_state, z, value=value, grad=grad, value_fn=value_fn
+    )
+    return optax.apply_updates(z, updates), opt_state
+
+
+def lbfgs_value_grad(state):
+    """(objective, gradient) at the current iterate, as L-BFGS's line search left them."""
+    return optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad")
+
+
+@eqx.filter_jit
+def _population(config: TuneConfig, zs, cases, ref):
+    """Objective of each candidate row of ``zs`` (P, 12): one simulate_batch call over
+    P x n cases with per-case controllers."""
+    space = config.space()
+    p, n = zs.shape[0], cases.n_cases
+    z = _unflat(jnp.repeat(zs, n, axis=0), space.names)  # (P n, 4) per gain
+    costs = case_costs(
+        space.controller_of(space.log_gains(z)), tile_cases(cases, p), config.objective
+    )
+    per = jax.tree.map(lambda x: x.reshape(p, n), costs)
+    return jax.vmap(lambda c: objective_of_costs(c, ref, config.objective))(per)
 
 
 def tune(
@@ -249,21 +467,28 @@ def tune(
     return Tuner(config).run(out, resume=resume, progress=progress)
 
 
-def save_checkpoint(out, config: TuneConfig, step: int, params, opt_state, history) -> None:
-    """Write OUT/checkpoint.eqx (params, optimiser state; exact) and OUT/checkpoint.json."""
+def save_checkpoint(out, config: TuneConfig, step: int, z, state, history) -> None:
+    """Write OUT/checkpoint.eqx (z and the optax state; exact) or OUT/checkpoint_cma.pkl (the
+    CMA-ES object), and OUT/checkpoint.json (iteration, config, history)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / (CHECKPOINT_ARRAYS + ".tmp")
-    eqx.tree_serialise_leaves(tmp, (params, opt_state))
-    tmp.replace(out / CHECKPOINT_ARRAYS)
+    if config.method == "cmaes":
+        tmp = out / (CHECKPOINT_CMA + ".tmp")
+        # cmaes.CMA drops its random generator when pickled: keep the generator's state too
+        tmp.write_bytes(pickle.dumps({**state, "rng": state["cma"]._rng.get_state()}))
+        tmp.replace(out / CHECKPOINT_CMA)
+    else:
+        tmp = out / (CHECKPOINT_ARRAYS + ".tmp")
+        eqx.tree_serialise_leaves(tmp, (z, state))
+        tmp.replace(out / CHECKPOINT_ARRAYS)
     doc = {"step": step, "config": config.to_dict(), "history": history}
     tmp = out / (CHECKPOINT_STATE + ".tmp")
     tmp.write_text(json.dumps(doc))
     tmp.replace(out / CHECKPOINT_STATE)
 
 
-def load_checkpoint(out, config: TuneConfig, params, opt_state):
-    """(step, params, opt_state, history) from OUT's checkpoint; the config must match."""
+def load_checkpoint(out, config: TuneConfig, z, state):
+    """(iteration, z, state, history) from OUT's checkpoint; the config must match."""
     out = Path(out)
     try:
         doc = json.loads((out / CHECKPOINT_STATE).read_text())
@@ -277,5 +502,10 @@ def load_checkpoint(out, config: TuneConfig, params, opt_state):
         raise ValueError(
             f"checkpoint in {out} was written with a different config (saved, requested): {diff}."
         )
-    params, opt_state = eqx.tree_deserialise_leaves(out / CHECKPOINT_ARRAYS, (params, opt_state))
-    return int(doc["step"]), params, opt_state, doc["history"]
+    if config.method == "cmaes":
+        state = pickle.loads((out / CHECKPOINT_CMA).read_bytes())
+        state["cma"]._rng.set_state(state.pop("rng"))
+        z = _unflat(state["best"], config.space().names)
+    else:
+        z, state = eqx.tree_deserialise_leaves(out / CHECKPOINT_ARRAYS, (z, state))
+    return int(doc["step"]), z, state, doc["history"]

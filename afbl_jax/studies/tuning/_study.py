@@ -4,22 +4,32 @@ held-out evaluation (paper gains vs tuned gains on a fresh case set, canonical I
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
 from ...io import gains_to_dict, run_metadata, save_gains
 from ...model import AbstractController, make_controller
 from ...sim import STATUS_NAMES
+from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
-from ._objective import ObjectiveConfig, case_costs
-from ._optimize import TuneConfig, Tuner, TuneResult
+from ._objective import ObjectiveConfig, case_costs, limit_report
+from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult
 
+HELDOUT_CASES = 1024
+"""Default number of fresh held-out cases."""
 PERCENTILES = (50, 90, 99)
+CVAR_LEVEL = 0.9
+HELDOUT_SOLVER = {"dtype": "float32", "rtol": 3e-6, "atol": 3e-7}
+"""Held-out solves: the Monte-Carlo study's default (float32 ensemble, rtol 3e-6, atol 3e-7)."""
+HELDOUT_METRICS = ("ise", "ise_attitude", "ise_altitude", "effort", "saturation")
 
 
 @dataclass
@@ -32,34 +42,61 @@ class TuningReport:
     heldout: dict
     canonical: dict
     text: str
+    limits: dict | None = None
+
+
+def cvar(values: np.ndarray, level: float = CVAR_LEVEL) -> float:
+    """Mean of the worst ceil((1 - level) n) values (the upper tail; CVaR_level)."""
+    v = np.sort(np.asarray(values, dtype=float))
+    k = max(1, math.ceil((1.0 - level) * v.size))
+    return float(np.mean(v[-k:]))
+
+
+def distribution_stats(values: np.ndarray) -> dict:
+    """P50/P90/P99, CVaR_0.9 and mean of ``values`` (finite ones)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {**{f"p{p}": math.nan for p in PERCENTILES}, "cvar90": math.nan, "mean": math.nan}
+    out = {f"p{p}": float(np.percentile(v, p)) for p in PERCENTILES}
+    out["cvar90"] = cvar(v)
+    out["mean"] = float(np.mean(v))
+    return out
+
+
+@eqx.filter_jit
+def _heldout_costs(config: ObjectiveConfig, controller, cases):
+    return case_costs(controller, cases, config)
 
 
 def evaluate_heldout(
-    controllers: dict[str, AbstractController], cases, config: ObjectiveConfig
+    controllers: dict[str, AbstractController],
+    cases,
+    config: ObjectiveConfig,
+    solver: dict | None = None,
 ) -> dict:
-    """Per controller: ISE percentiles, mean effort, failure rate on ``cases``."""
-    fn = jax.jit(lambda c, cs: case_costs(c, cs, config))
+    """Per controller, on ``cases`` (sensor noise as sampled): P50/P90/P99, CVaR_0.9 and mean
+    of ISE = ISE_att + ISE_alt [rad^2 s + m^2 s], each ISE, effort and saturation over every
+    case (a failed case counts with the costs accumulated until it failed), and the failure
+    rate with its 95 % Wilson interval. Solved as the Monte-Carlo study does (`HELDOUT_SOLVER`;
+    ``solver`` overrides it)."""
+    config = dataclasses.replace(config, **(HELDOUT_SOLVER if solver is None else solver))
     out = {}
     for name, ctrl in controllers.items():
-        c = jax.tree.map(np.asarray, fn(ctrl, cases))
-        ok = ~c.failed
-        ise = c.ise_attitude + config.w_altitude * c.ise_altitude
-        entry = {
-            "n_cases": int(c.loss.shape[0]),
-            "failure_rate": float(np.mean(c.failed)),
-            "loss_mean": float(np.mean(c.loss)),
+        c = jax.tree.map(np.asarray, _heldout_costs(config, ctrl, cases))
+        n = int(c.failed.shape[0])
+        k = int(np.sum(c.failed))
+        values = {
+            "ise": c.ise_attitude + c.ise_altitude,
+            "ise_attitude": c.ise_attitude,
+            "ise_altitude": c.ise_altitude,
+            "effort": c.effort,
+            "saturation": c.saturation,
         }
-        for key, vals in (
-            ("ise", ise),
-            ("ise_attitude", c.ise_attitude),
-            ("ise_altitude", c.ise_altitude),
-        ):
-            v = vals[ok] if ok.any() else np.array([np.nan])
-            entry[key] = {f"p{p}": float(np.percentile(v, p)) for p in PERCENTILES}
-            entry[key]["mean"] = float(np.mean(v))
-        entry["effort_mean"] = float(np.mean(c.effort[ok])) if ok.any() else float("nan")
-        entry["saturation_mean"] = float(np.mean(c.saturation))
-        entry["saturation_max"] = float(np.max(c.saturation))
+        entry = {"n_cases": n, "failures": k, "failure_rate": k / n}
+        entry["failure_wilson95"] = list(wilson_interval(k, n))
+        for key in HELDOUT_METRICS:
+            entry[key] = distribution_stats(values[key])
         entry["saturated_fraction"] = float(np.mean(c.saturation > 0))
         out[name] = entry
     return out
@@ -87,28 +124,47 @@ def evaluate_canonical(controllers: dict[str, AbstractController], thrust_to_wei
 
 
 def format_report(
-    heldout: dict, canonical: dict, omega_max: float, heldout_seed: int, config: TuneConfig
+    heldout: dict,
+    canonical: dict,
+    omega_max: float,
+    heldout_seed: int,
+    config: TuneConfig,
+    limits: dict | None = None,
+    on_box: list[str] | None = None,
 ) -> str:
-    w = config.objective.w_altitude
+    first = next(iter(heldout.values()))
     lines = [
-        f"Held-out evaluation: {next(iter(heldout.values()))['n_cases']} fresh cases "
-        f"(seed {heldout_seed}; training seed {config.seed}), rotor limit omega_max = "
-        f"{omega_max:.1f} rad/s",
-        f"ISE = ISE_att + {w:g} ISE_alt over ok runs; effort = mean int |u - u_hover|^2 dt; "
-        "sat = saturation integral [s] (mean, max, share of cases > 0); objective = mean J",
-        f"{'gains':<8}{'ISE p50':>11}{'ISE p90':>11}{'ISE p99':>11}{'att p50':>11}"
-        f"{'alt p50':>11}{'effort':>9}{'sat mean':>10}{'sat max':>9}{'sat>0':>7}"
-        f"{'objective':>11}{'failed':>8}",
+        f"Held-out evaluation: {first['n_cases']} fresh cases (seed {heldout_seed}; training "
+        f"seed {config.seed}; sensor noise on), rotor limit omega_max = {omega_max:.1f} rad/s",
+        "ISE = ISE_att + ISE_alt [rad^2 s + m^2 s]; effort = int |u - u_hover|^2 dt; "
+        "sat = saturation integral [s]; every case counted (failed: costs until failure); "
+        "float32 solves (rtol 3e-6, atol 3e-7) as in the Monte-Carlo study",
+        f"{'gains':<8}{'metric':<14}{'P50':>11}{'P90':>11}{'P99':>11}{'CVaR0.9':>11}{'mean':>11}",
     ]
     for name, e in heldout.items():
+        for key in HELDOUT_METRICS:
+            s = e[key]
+            lines.append(
+                f"{name:<8}{key:<14}{s['p50']:>11.4e}{s['p90']:>11.4e}{s['p99']:>11.4e}"
+                f"{s['cvar90']:>11.4e}{s['mean']:>11.4e}"
+            )
+        lo, hi = e["failure_wilson95"]
         lines.append(
-            f"{name:<8}{e['ise']['p50']:>11.4e}{e['ise']['p90']:>11.4e}"
-            f"{e['ise']['p99']:>11.4e}{e['ise_attitude']['p50']:>11.4e}"
-            f"{e['ise_altitude']['p50']:>11.4e}{e['effort_mean']:>9.2f}"
-            f"{e['saturation_mean']:>10.2e}{e['saturation_max']:>9.2e}"
-            f"{100 * e['saturated_fraction']:>6.0f}%{e['loss_mean']:>11.4e}"
-            f"{100 * e['failure_rate']:>7.1f}%"
+            f"{name:<8}{'failures':<14}{e['failures']:>6d} / {e['n_cases']} = "
+            f"{100 * e['failure_rate']:.2f} % (95 % Wilson {100 * lo:.2f}-{100 * hi:.2f} %)"
         )
+    if limits is not None:
+        lines += [
+            "",
+            "Limits at the tuned gains (training cases): "
+            f"effort {limits['effort_ratio']:.3f} x paper (limit {limits['effort_limit']:g}"
+            f"{', ACTIVE' if limits['effort_active'] else ''}); saturation "
+            f"{limits['saturation_ratio']:.3g} x scale (limit {limits['saturation_limit']:g}"
+            f"{', ACTIVE' if limits['saturation_active'] else ''}); failures "
+            f"{limits['failures']} (paper's gains: {limits['failures_reference']})",
+        ]
+    if on_box is not None:
+        lines.append("Gains on the box: " + (", ".join(on_box) if on_box else "none"))
     lines += [
         "",
         "Canonical scenarios (rtol 1e-8, same rotor limit): ISE [rad^2 s, m^2 s], "
@@ -142,28 +198,41 @@ def run_tuning(
     figures: bool = True,
     progress: bool = True,
     log=print,
+    distribution=None,
 ) -> TuningReport:
     """Tune, then evaluate paper vs tuned gains and write every output file to ``out``."""
     out = Path(out)
+    if resume and not (out / CHECKPOINT_STATE).exists():
+        raise ValueError(f"no checkpoint in {out} ({CHECKPOINT_STATE} missing).")
     out.mkdir(parents=True, exist_ok=True)
     heldout_seed = config.seed + 1 if heldout_seed is None else int(heldout_seed)
     if heldout_seed == config.seed and config.objective.objective == "robust":
         raise ValueError("the held-out seed must differ from the training seed.")
-    n_heldout = config.n_cases if heldout_cases is None else int(heldout_cases)
-    tuner = Tuner(config)
+    n_heldout = HELDOUT_CASES if heldout_cases is None else int(heldout_cases)
+    tuner = Tuner(config, distribution=distribution)
     result = tuner.run(out, resume=resume, progress=progress, log=log)
     paper, tuned = make_controller(config.controller), result.controller
     save_gains(tuned, out / "gains.json")
     write_history_csv(result.history, out / "history.csv")
     log(
-        f"loss {result.initial_loss:.5e} (paper gains) -> {result.final_loss:.5e} (tuned), "
-        f"{config.steps} steps"
+        f"objective {result.initial_loss:.5e} (paper gains) -> {result.final_loss:.5e} "
+        f"(tuned), {len(result.history) - 1} iterations of {config.method}, "
+        f"{result.history[-1]['time_s']:.1f} s"
     )
-    cases = training_cases(n_heldout, heldout_seed, thrust_to_weight=config.thrust_to_weight)
+    limits = limit_report(
+        result.costs,
+        result.reference,
+        config.objective,
+        int(np.sum(np.asarray(tuner.reference_costs.failed))),
+    )
+    on_box = tuner.space.on_box(result.params)
+    cases = training_cases(
+        n_heldout, heldout_seed, thrust_to_weight=config.thrust_to_weight, distribution=distribution
+    )
     controllers = {"paper": paper, "tuned": tuned}
     heldout = evaluate_heldout(controllers, cases, config.objective)
     rep, canonical, omega_max = evaluate_canonical(controllers, config.thrust_to_weight)
-    text = format_report(heldout, canonical, omega_max, heldout_seed, config)
+    text = format_report(heldout, canonical, omega_max, heldout_seed, config, limits, on_box)
     log(text)
     (out / "evaluation.txt").write_text(text + "\n")
     meta = run_metadata(
@@ -179,6 +248,8 @@ def run_tuning(
         "tuned_gains": gains_to_dict(tuned),
         "initial_loss": result.initial_loss,
         "final_loss": result.final_loss,
+        "limits": limits,
+        "gains_on_box": on_box,
         "heldout": heldout,
         "canonical": canonical,
         "omega_max": omega_max,
@@ -191,4 +262,4 @@ def run_tuning(
 
         plot_convergence(result.history, config, out / "convergence.png")
         plot_before_after(rep.runs, omega_max, out / "before_after.png")
-    return TuningReport(result, paper, tuned, heldout, canonical, text)
+    return TuningReport(result, paper, tuned, heldout, canonical, text, limits)
