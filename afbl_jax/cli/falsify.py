@@ -71,7 +71,12 @@ def register(sub) -> None:
     p.add_argument("--seed", type=seed, default=0, help="seed of the start cases")
     add_out(p)
     p.add_argument(
-        "--distribution", type=Path, default=None, metavar="FILE", help="TOML/JSON overrides"
+        "--distribution",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="TOML/JSON overrides of the Monte-Carlo distribution (default: none, the "
+        "Monte-Carlo default distribution)",
     )
     p.add_argument("--starts", type=int, default=8, help="starts = CMA-ES population size")
     p.add_argument(

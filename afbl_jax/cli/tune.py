@@ -29,7 +29,7 @@ def add_tuning_args(p) -> None:
         "--cvar-level", type=float, default=0.9, help="CVaR level alpha (mean of the worst 1-alpha)"
     )
     p.add_argument("--cases", type=int, default=64, help="training cases (robust)")
-    p.add_argument("--steps", type=int, default=100, help="iterations (steps; CMA-ES: generations)")
+    p.add_argument("--steps", type=int, default=100, help="iterations, or CMA-ES generations")
     p.add_argument(
         "--method",
         "--optimizer",

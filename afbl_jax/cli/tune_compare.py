@@ -19,7 +19,14 @@ def register(sub) -> None:
         "(OUT/controllers.{txt,json}). gradient-cost: one gradient vs one forward evaluation "
         "of the training cases, float32 and float64 (OUT/gradient_cost.json).",
     )
-    p.add_argument("--study", required=True, choices=["optimizers", "controllers", "gradient-cost"])
+    p.add_argument(
+        "--study",
+        required=True,
+        choices=["optimizers", "controllers", "gradient-cost"],
+        help="optimizers: L-BFGS / Adam / CMA-ES on the same cases and budget; controllers: "
+        "FBL+PID and AFBL each tuned, then evaluated on held-out cases; gradient-cost: "
+        "value-and-gradient time against the forward evaluation",
+    )
     add_tuning_args(p)
     p.add_argument("--seeds", type=seed, nargs="+", default=[0, 1, 2], help="training seeds")
     p.add_argument(

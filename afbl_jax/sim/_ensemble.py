@@ -386,7 +386,7 @@ def _lean_group_field(fixed):
 
     def one_case(t, state, frozen, p, held):
         loop, inputs = eqx.combine(p, fixed)
-        dstate = loop.signals_and_derivative(t, state, inputs, held)[1]
+        dstate = loop.signals_and_derivative(t, state, inputs, held, materialise=True)[1]
         return jax.tree.map(lambda d: jnp.where(frozen, jnp.zeros_like(d), d), dstate)
 
     def group_field(t, y, args, p):

@@ -63,7 +63,8 @@ def test_margin_sign_agrees_with_status():
     expected = np.minimum(
         np.maximum(cols["peak_attitude_error"] / 1.2, cols["peak_altitude_error"] / 10.0) - 1, 0
     )
-    np.testing.assert_allclose(cols["failure_margin"][ok], expected[ok])
+    # the default path computes the margin in float32 (eps 1.2e-7) from its float32 peaks
+    np.testing.assert_allclose(cols["failure_margin"][ok], expected[ok], rtol=1e-6)
 
 
 @pytest.mark.slow

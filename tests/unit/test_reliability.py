@@ -342,7 +342,7 @@ def test_every_flag_shows_its_default_in_help(capsys):
                     assert "default" in action.help, f"{flag} does not say its default"
     assert main(["tune", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
-    for flag, default in (("--steps", "100"), ("--lr", "0.05"), ("--max-steps", "8192")):
+    for flag, default in (("--steps", "100"), ("--lr", "0.05"), ("--max-steps", "4096")):
         pattern = re.escape(flag) + r" [A-Z_]+ [^()]*\(default: " + re.escape(default) + r"\)"
         assert re.search(pattern, text), flag
 
