@@ -44,7 +44,7 @@ def add_tuning_args(p) -> None:
         default=None,
         help="wall-time budget of the optimisation [s] (after compiling); default: none",
     )
-    p.add_argument("--lr", type=float, default=0.05, help="Adam: peak step (z units)")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam: peak step, in z units")
     p.add_argument(
         "--schedule",
         default="cosine",
@@ -97,7 +97,7 @@ def add_tuning_args(p) -> None:
     p.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance")
     p.add_argument("--atol", type=float, default=1e-8, help="absolute tolerance")
     p.add_argument(
-        "--max-steps", type=int, default=4096, help="solver steps per run (continuous control)"
+        "--max-steps", type=int, default=4096, help="solver steps per run with continuous control"
     )
     p.add_argument(
         "--max-steps-interval",
