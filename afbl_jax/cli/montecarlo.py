@@ -56,20 +56,26 @@ def register(sub) -> None:
     add_progress(p)
     rare = p.add_argument_group(
         "rare-event estimators",
-        "--estimator is|ce estimates the failure probability by importance sampling in the "
-        "standard-normal space of the case variates (float64 ensembles at --rtol/--atol, "
-        "default 1e-6 / 1e-8) and writes OUT/rare_event.json, results.parquet (the estimating "
-        "samples with their log weights) and rare_report.md; --cases is then the size of the "
-        "final importance-sampling stage",
+        "--estimator is|ce|ce-mixture estimates the failure probability by importance "
+        "sampling in the standard-normal space of the case variates (float64 ensembles at "
+        "--rtol/--atol, default 1e-6 / 1e-8; with --strategy ensemble_f32 the crude study's "
+        "float32 path, default 3e-6 / 3e-7) and writes OUT/rare_event.json, results.parquet "
+        "(the estimating samples with their log weights) and rare_report.md; --cases is then "
+        "the size of the final importance-sampling stage",
     )
     rare.add_argument(
         "--estimator",
         default="crude",
         help="crude (the Monte-Carlo study above), is (importance sampling centred on the most "
-        "likely failure a gradient search finds) or ce (cross-entropy method)",
+        "likely failure a gradient search finds), ce (cross-entropy method) or ce-mixture "
+        "(cross-entropy method on the few variates its stages find to drive failure, with a "
+        "defensive normal mixture proposal; the one that works on several failure modes)",
     )
     rare.add_argument(
-        "--stage-cases", type=int, default=512, help="ce: samples per cross-entropy stage"
+        "--stage-cases",
+        type=int,
+        default=512,
+        help="ce, ce-mixture: samples per cross-entropy stage",
     )
     rare.add_argument(
         "--search-budget",
@@ -154,14 +160,16 @@ def run(args) -> int:
             f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
         )
     check_tolerances(args)
-    if args.estimator not in ("crude", "is", "ce"):
-        raise UsageError(f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce.")
+    if args.estimator not in ("crude", "is", "ce", "ce-mixture"):
+        raise UsageError(
+            f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce, ce-mixture."
+        )
     if args.estimator != "crude":
         return run_rare(args)
     if args.attitude_limit is not None or args.altitude_limit is not None:
         raise UsageError(
-            "--attitude-limit/--altitude-limit apply to --estimator is|ce; the crude study "
-            "counts status failures (the divergence limits)."
+            "--attitude-limit/--altitude-limit apply to --estimator is|ce|ce-mixture; the crude "
+            "study counts status failures (the divergence limits)."
         )
     check_out(args.out)
     controllers = controllers_from_args(args)
@@ -211,7 +219,15 @@ def run_rare(args) -> int:
     if args.search_budget < 0:
         raise UsageError(f"--search-budget must be >= 0, got {args.search_budget}.")
     if args.host_index is not None or args.distributed:
-        raise UsageError("--estimator is|ce runs on one host (no --host-index/--distributed).")
+        raise UsageError(
+            "--estimator is|ce|ce-mixture runs on one host (no --host-index/--distributed)."
+        )
+    if args.strategy not in ("auto", "ensemble", "ensemble_f32"):
+        raise UsageError(
+            f"--estimator {args.estimator} solves ensembles: --strategy must be auto or "
+            f"ensemble (float64) or ensemble_f32 (float32), got {args.strategy!r}."
+        )
+    f32 = args.strategy == "ensemble_f32"
     check_failure_limits(args)
     check_out(args.out)
     controllers = controllers_from_args(args)
@@ -233,8 +249,9 @@ def run_rare(args) -> int:
             search_budget=args.search_budget,
             attitude_limit=args.attitude_limit,
             altitude_limit=args.altitude_limit,
-            rtol=args.rtol or 1e-6,
-            atol=args.atol or 1e-8,
+            rtol=args.rtol or (3e-6 if f32 else 1e-6),
+            atol=args.atol or (3e-7 if f32 else 1e-8),
+            dtype="float32" if f32 else None,
         )
     )
     print(f"wrote {args.out}/rare_event.json, results.parquet, rare_report.md")

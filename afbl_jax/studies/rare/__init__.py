@@ -3,10 +3,14 @@ global sensitivities of the failure margin over a Monte-Carlo distribution's sta
 variates."""
 
 from ._estimators import Estimate as Estimate
+from ._estimators import MixtureProposal as MixtureProposal
 from ._estimators import cross_entropy as cross_entropy
+from ._estimators import cross_entropy_mixture as cross_entropy_mixture
 from ._estimators import crude as crude
+from ._estimators import fit_mixture as fit_mixture
 from ._estimators import importance_sampling as importance_sampling
 from ._estimators import normal_tail as normal_tail
+from ._estimators import select_coordinates as select_coordinates
 from ._estimators import to_normal as to_normal
 from ._estimators import to_unit as to_unit
 from ._estimators import wilson as wilson

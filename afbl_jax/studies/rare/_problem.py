@@ -49,7 +49,10 @@ class MarginProblem:
         distribution: the case distribution (``[unmodeled]`` off).
         attitude_limit [rad], altitude_limit [m]: failure limits (None: the divergence limits,
             where failed <=> status not ok).
-        rtol, atol, n_save, max_steps: solver settings (float64 everywhere).
+        rtol, atol, n_save, max_steps: solver settings.
+        dtype: floating dtype of the margin solves (`margin`; None: float64, the default;
+            "float32" with rtol 3e-6, atol 3e-7 is the crude Monte-Carlo study's default
+            ``ensemble_f32`` path); gradients are always float64.
         temperature: of `afbl_jax.smooth_margin`.
         simulations: forward simulations run so far; gradient_simulations: simulations run
             with their gradient (each costs a forward and a backward solve).
@@ -64,6 +67,7 @@ class MarginProblem:
     n_save: int = 401
     max_steps: int = 16384
     temperature: float = 0.05
+    dtype: str | None = None
     simulations: int = 0
     gradient_simulations: int = 0
 
@@ -103,6 +107,7 @@ class MarginProblem:
             max_steps=self.max_steps,
             n_save=self.n_save,
             group_size=GROUP_SIZE,
+            dtype=self.dtype,
         )
         self.simulations += n
         return jax.tree.map(lambda x: x[:n], m)

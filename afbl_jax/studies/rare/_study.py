@@ -9,8 +9,10 @@ seed, versions, git revision: `afbl_jax.io.run_metadata`), ``worst_cases.parquet
 case of every search, its inputs and margin), ``sensitivity.json`` and figures.
 
 `run_rare_event`: a failure probability per controller by ``"crude"``, ``"is"`` (importance
-sampling centred on the most likely failure found by a short gradient search) or ``"ce"``
-(cross-entropy method) in standard-normal space of the variates. Writes ``rare_event.json``
+sampling centred on the most likely failure found by a short gradient search), ``"ce"``
+(cross-entropy method) or ``"ce-mixture"`` (cross-entropy method on the variates its stages
+find moved in the elite set, with a defensive normal mixture proposal) in standard-normal space
+of the variates. Writes ``rare_event.json``
 (estimate, cv, 95 % interval, simulations, stages; with `afbl_jax.io.run_metadata`) and
 ``results.parquet`` (the estimating stage's samples: case inputs, margin, log weight).
 """
@@ -38,14 +40,22 @@ from ..montecarlo import (
     cases_from_variates,
     default_distribution,
     draw_variates,
+    fixed_variates,
     variate_groups,
 )
-from ._estimators import Estimate, cross_entropy, crude, importance_sampling, to_unit
+from ._estimators import (
+    Estimate,
+    cross_entropy,
+    cross_entropy_mixture,
+    crude,
+    importance_sampling,
+    to_unit,
+)
 from ._falsify import cmaes_search, design_point, gradient_ascent, most_likely_failure
 from ._problem import MarginProblem
 from ._sensitivity import dgsm, sobol_indices
 
-ESTIMATORS = ("crude", "is", "ce")
+ESTIMATORS = ("crude", "is", "ce", "ce-mixture")
 
 
 @dataclass(frozen=True)
@@ -115,6 +125,7 @@ def _problem(c, controller) -> MarginProblem:
         rtol=c.rtol,
         atol=c.atol,
         n_save=c.n_save,
+        dtype=getattr(c, "dtype", None),
     )
 
 
@@ -291,14 +302,19 @@ class RareEventConfig:
 
     Attributes:
         controllers, out, distribution, seed: as for the Monte-Carlo study.
-        estimator: "crude", "is" or "ce".
-        n_cases: crude: the cases; is / ce: samples of the final importance-sampling stage.
+        estimator: "crude", "is", "ce" or "ce-mixture".
+        n_cases: crude: the cases; otherwise: samples of the final importance-sampling stage.
         n_per_stage, rho, max_stages, adapt_scale: cross-entropy settings.
+        components, alpha, max_selected: ce-mixture: components of the normal mixture, weight
+            of the nominal (defensive) component, most variates adapted (chosen among all
+            non-fixed variates by the stages' selection tests).
         search_budget: gradient simulations (HL-RF iterations, `design_point`) of the search
             for the most likely failure that centres "is" and starts "ce" (0: none; the
-            nominal point).
+            nominal point); "ce-mixture" starts from the nominal distribution (no search).
         attitude_limit [rad], altitude_limit [m]: failure limits (None: divergence limits).
-        rtol, atol, n_save: solver settings; batch: simulations per call.
+        rtol, atol, n_save: solver settings; dtype: of the margin solves (None: float64;
+            "float32": the crude study's ``ensemble_f32`` path, with rtol 3e-6, atol 3e-7);
+            batch: simulations per call.
     """
 
     controllers: dict[str, AbstractController]
@@ -311,12 +327,16 @@ class RareEventConfig:
     rho: float = 0.1
     max_stages: int = 10
     adapt_scale: bool = False
+    components: int = 2
+    alpha: float = 0.1
+    max_selected: int = 8
     search_budget: int = 8
     attitude_limit: float | None = None
     altitude_limit: float | None = None
     rtol: float = 1e-6
     atol: float = 1e-8
     n_save: int = 401
+    dtype: str | None = None
     batch: int = 256
 
     def to_dict(self) -> dict:
@@ -362,6 +382,24 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
         before = problem.simulations + problem.gradient_simulations
         if c.estimator == "crude":
             est = crude(g, dim, c.n_cases, rng, batch=c.batch)
+        elif c.estimator == "ce-mixture":
+            est = cross_entropy_mixture(
+                g,
+                dim,
+                c.n_per_stage,
+                c.n_cases,
+                rng,
+                rho=c.rho,
+                max_stages=c.max_stages,
+                candidates=~fixed_variates(c.distribution),
+                max_selected=c.max_selected,
+                components=c.components,
+                alpha=c.alpha,
+                batch=c.batch,
+            )
+            names = problem.names
+            for stage in est.stages:
+                stage["selected_names"] = [names[j] for j in stage["selected"]]
         elif c.estimator == "is":
             est = importance_sampling(
                 g, np.zeros(dim) if mean is None else mean, c.n_cases, rng, batch=c.batch
@@ -411,8 +449,6 @@ def adapted_variates(distribution: Distribution) -> np.ndarray:
     """The variates whose importance-sampling proposal is fitted: every one but the
     turbulence phases (3 x n_frequencies of them, each changing little alone) and the fixed
     ones."""
-    from ..montecarlo import fixed_variates
-
     groups = np.array(variate_groups(distribution))
     return (groups != "turbulence_phase") & ~fixed_variates(distribution)
 
