@@ -1,9 +1,11 @@
 """Rare failures: worst cases by gradient vs CMA-ES (same as `afbl falsify`), or a rare-event
-failure probability (`afbl montecarlo --estimator ce|is`) with ``estimate`` as first argument.
+failure probability (`afbl montecarlo --estimator ce-mixture|ce|is`) with ``estimate`` as first
+argument.
 
     python studies/rare_failures.py --controllers afbl --seeds 10 --starts 4 --budget 32 \\
         --distribution studies/distributions/light_turbulence_4s.toml --out results/falsify
-    python studies/rare_failures.py estimate --estimator ce --controllers afbl --cases 2048 \\
+    python studies/rare_failures.py estimate --estimator ce-mixture --strategy ensemble_f32 \\
+        --controllers afbl --stage-cases 400 --cases 1700 \\
         --distribution studies/distributions/light_turbulence.toml --out results/rare
 
 Writes OUT/falsify.json, worst_cases.parquet, rare_report.md and figures (or rare_event.json,

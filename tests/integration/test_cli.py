@@ -194,6 +194,10 @@ def test_bench_cli_smoke(tmp_path, capsys):
         (["montecarlo", "--attitude-limit", "0.3"], "--attitude-limit/--altitude-limit apply"),
         (["montecarlo", "--estimator", "ce", "--attitude-limit", "-1"], "--attitude-limit must"),
         (["montecarlo", "--estimator", "ce", "--stage-cases", "1"], "--stage-cases must be"),
+        (
+            ["montecarlo", "--estimator", "ce-mixture", "--strategy", "vmap"],
+            "--strategy must be auto or ensemble",
+        ),
         (["falsify", "--budget", "4", "--starts", "8"], "--budget (4) must be >= --starts (8)"),
         (["falsify", "--sensitivity-samples", "48"], "must be 0 or a power of 2, got 48"),
     ],

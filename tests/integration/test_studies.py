@@ -280,3 +280,31 @@ def test_rare_failures_script(tmp_path):
     est = doc["rare_event"]["controllers"]["afbl"]
     assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
     assert est["total_simulations"] >= 32
+    r = _run(
+        "rare_failures.py",
+        "estimate",
+        "--estimator",
+        "ce-mixture",
+        "--strategy",
+        "ensemble_f32",
+        "--controllers",
+        "afbl",
+        "--cases",
+        "16",
+        "--stage-cases",
+        "16",
+        "--attitude-limit",
+        "0.2",
+        "--distribution",
+        str(dist),
+        "--out",
+        str(tmp_path / "m"),
+        "--no-progress",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "m" / "rare_event.json").read_text())
+    assert doc["config"]["dtype"] == "float32" and doc["config"]["rtol"] == 3e-6
+    est = doc["rare_event"]["controllers"]["afbl"]
+    assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
+    assert est["stages"][0]["selected_names"] and est["proposal"]["alpha"] == 0.1
+    assert est["total_simulations"] == 16 * (len(est["stages"]) + 1)
