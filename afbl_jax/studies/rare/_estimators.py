@@ -377,7 +377,9 @@ def cross_entropy_mixture(
     batch=None,
 ) -> Estimate:
     """Cross-entropy method with coordinate selection and a defensive mixture (module
-    docstring). ``candidates``: boolean mask (D,) of the coordinates that may be selected
+    docstring). The level of a stage is its (1 - rho)-quantile of the margin, or 0 once the
+    pooled failing samples amount to rho n_per_stage / 2 effective samples.
+    ``candidates``: boolean mask (D,) of the coordinates that may be selected
     (default all); ``alpha``: the nominal component's weight in every proposal after the
     first stage (weights <= 1 / alpha); ``selection_level``: family-wise level of the
     selection tests of one stage; ``temper``: the final stage samples
@@ -410,6 +412,13 @@ def cross_entropy_mixture(
         zz, mm = np.concatenate(pool_z), np.concatenate(pool_m)
         lw = -special.logsumexp([-q.log_ratio(zz) for q in proposals], axis=0)
         lw += math.log(len(proposals))
+        # enough failures pooled to fit at level 0 (where the unselected variates decide
+        # failure, no proposal on the selected ones makes a fraction rho of a stage fail)
+        failed = mm > 0
+        if failed.any():
+            wf = np.exp(lw[failed] - lw[failed].max())
+            if wf.sum() ** 2 / np.sum(wf**2) >= rho * n_per_stage / 2:
+                level = 0.0
         elite = mm >= level
         w = np.where(elite, np.exp(lw - np.max(lw[elite])), 0.0)
         w /= w.sum()
