@@ -24,8 +24,8 @@
 #    gradient with respect to every uncertain input comes from the differentiable simulation;
 # 2. **worst-case search** (`afbl falsify`): projected multi-start gradient ascent on the
 #    margin against CMA-ES;
-# 3. **rare-event probabilities** (`afbl montecarlo --estimator ce|is`): importance sampling
-#    with a cross-entropy-fitted proposal, and **sensitivities** (DGSM, Sobol).
+# 3. **rare-event probabilities** (`afbl montecarlo --estimator ce-mixture|ce|is`): importance
+#    sampling with a cross-entropy-fitted proposal, and **sensitivities** (DGSM, Sobol).
 #
 # Small sizes here (4 s runs) so the tests can execute the notebook.
 
