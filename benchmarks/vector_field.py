@@ -9,7 +9,7 @@ difference to the default says what that part costs. Variants are timed interlea
 ``--repeats``, in one process; run pinned to one core for stable numbers::
 
     XLA_FLAGS=--xla_force_host_platform_device_count=1 taskset -c 1 \\
-        python benchmarks/vector_field.py --cases 1024
+        python benchmarks/vector_field.py --cases 1024 [--against ../other-checkout]
 
 ``--hlo`` also prints op counts of each variant's compiled evaluation (transcendental ops,
 gathers, selects, broadcasts, transposes, dtype conversions, float64 ops).
@@ -18,17 +18,19 @@ gathers, selects, broadcasts, transposes, dtype conversions, float64 ops).
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import re
+import sys
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-import afbl_jax as A
-from afbl_jax.studies.bench import bench_cases
-from afbl_jax.studies.montecarlo import default_distribution, sample_cases
+import afbl_jax
 
 VARIANTS = {
     "default": "the Monte-Carlo cases as sampled",
@@ -45,6 +47,22 @@ VARIANTS = {
 """Variant name -> what it changes."""
 
 
+def load_package(source: str | None):
+    """The afbl_jax package of this checkout (None) or of another checkout's directory
+    ``source`` (imported under another name, so both can be timed in one process)."""
+    if source is None:
+        return afbl_jax
+    root = Path(source) / "afbl_jax"
+    name = "afbl_jax_against"
+    spec = importlib.util.spec_from_file_location(
+        name, root / "__init__.py", submodule_search_locations=[str(root)]
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def _shared(tree, n):
     """Case 0 of a batched pytree, repeated for all n cases (then hoisted as shared)."""
     return jax.tree.map(lambda x: jnp.broadcast_to(x[0], (n, *x.shape[1:])), tree)
@@ -54,16 +72,16 @@ def _batched(tree, n):
     return jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x), (n, *np.shape(x))), tree)
 
 
-def variant_cases(batch, name: str):
+def variant_cases(A, batch, name: str):
     """(scenario, vehicle, model, aerodynamics) of the cases of variant ``name`` (variants
-    joined with "+" apply one after the other)."""
+    joined with "+" apply one after the other); ``A``: the afbl_jax package."""
     sc, veh, model, aero = batch.scenario, batch.vehicle, batch.model, batch.aerodynamics
     for part in name.split("+"):
-        sc, veh, model, aero = _apply(part, batch.n_cases, sc, veh, model, aero)
+        sc, veh, model, aero = _apply(A, part, batch.n_cases, sc, veh, model, aero)
     return sc, veh, model, aero
 
 
-def _apply(name, n, sc, veh, model, aero):
+def _apply(A, name, n, sc, veh, model, aero):
     if name == "no_turbulence":
         w = sc.wind
         k0 = jnp.zeros((n, 3, 0))
@@ -93,17 +111,21 @@ def _apply(name, n, sc, veh, model, aero):
     elif name == "all_shared":
         sc, veh = _shared(sc, n), _shared(veh, n)
     elif name == "bench_cases":
-        sc = bench_cases(n, 0)[0]
+        sc = importlib.import_module(A.__name__ + ".studies.bench").bench_cases(n, 0)[0]
         return sc, A.QuadrotorParams(), A.QuadrotorParams(), None
     elif name != "default":
         raise ValueError(f"unknown variant {name!r}; allowed: {', '.join(VARIANTS)}.")
     return sc, veh, model, aero
 
 
-def make_field(batch, name: str, controller, dtype, group_size: int):
-    sc, veh, model, aero = variant_cases(batch, name)
+def make_field(A, n: int, seed: int, name: str, dtype, group_size: int):
+    """The `ensemble_vector_field` of package ``A`` on n Monte-Carlo cases of variant
+    ``name`` (AFBL, default distribution)."""
+    mc = importlib.import_module(A.__name__ + ".studies.montecarlo")
+    batch = mc.sample_cases(mc.default_distribution(), n, seed)
+    sc, veh, model, aero = variant_cases(A, batch, name)
     return A.ensemble_vector_field(
-        controller, sc, veh, model, aerodynamics=aero, dtype=dtype, group_size=group_size
+        A.AFBL(), sc, veh, model, aerodynamics=aero, dtype=dtype, group_size=group_size
     )
 
 
@@ -158,41 +180,59 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--hlo", action="store_true")
+    ap.add_argument(
+        "--against",
+        default=None,
+        help="directory of another checkout: time its vector field too, in this process",
+    )
     args = ap.parse_args(argv)
     names = [v for v in args.variants.split(",") if v]
     for v in names:
         if not set(v.split("+")) <= set(VARIANTS):
             ap.error(f"unknown variant {v!r}; allowed: {', '.join(VARIANTS)}")
     dtype = jnp.dtype(args.dtype)
-    batch = sample_cases(default_distribution(), args.cases, args.seed)
-    controller = A.AFBL()
-    fields = {v: make_field(batch, v, controller, dtype, args.group_size) for v in names}
-    runs = {v: compiled_loop(f, args.evals, dtype) for v, f in fields.items()}
+    packages = {"this": load_package(None)}
+    if args.against:
+        packages["against"] = load_package(args.against)
+    keys = [(p, v) for v in names for p in packages]
+    fields = {
+        (p, v): make_field(packages[p], args.cases, args.seed, v, dtype, args.group_size)
+        for p, v in keys
+    }
+    runs = {k: compiled_loop(f, args.evals, dtype) for k, f in fields.items()}
     for r in runs.values():
         r()  # compile and warm up
-    best = {v: np.inf for v in names}
+    best = {k: np.inf for k in keys}
     for _ in range(args.repeats):  # interleaved repetitions, best of k
-        for v, r in runs.items():
+        for k, r in runs.items():
             t0 = time.perf_counter()
             r()
-            best[v] = min(best[v], time.perf_counter() - t0)
-    per = {v: 1e9 * best[v] / (args.cases * args.evals) for v in names}
-    base = per.get("default", next(iter(per.values())))
+            best[k] = min(best[k], time.perf_counter() - t0)
+    per = {k: 1e9 * best[k] / (args.cases * args.evals) for k in keys}
     print(
         f"vector field, {args.cases} cases, {args.evals} evaluations, {dtype.name}, groups of "
         f"{args.group_size}, best of {args.repeats} (wall time)"
     )
-    print(f"{'variant':18s} {'ns/case/eval':>12s} {'saved vs default':>17s}  what")
-    for v in names:
-        saved = base - per[v]
-        print(f"{v:18s} {per[v]:12.1f} {saved:10.1f} ({saved / base:5.1%})  {' + '.join(VARIANTS[p] for p in v.split('+'))}")
+    for p in packages:
+        label = "this checkout" if p == "this" else f"--against {args.against}"
+        print(f"\n{label}:")
+        base = per.get((p, "default"), per[(p, names[0])])
+        print(f"{'variant':18s} {'ns/case/eval':>12s} {'saved vs default':>17s}  what")
+        for v in names:
+            saved = base - per[(p, v)]
+            what = " + ".join(VARIANTS[q] for q in v.split("+"))
+            print(f"{v:18s} {per[(p, v)]:12.1f} {saved:10.1f} ({saved / base:5.1%})  {what}")
+    if args.against:
+        print("\nratio against / this (> 1: this checkout is faster)")
+        for v in names:
+            print(f"{v:18s} {per[('against', v)] / per[('this', v)]:12.2f}")
     if args.hlo:
         print()
-        counts = {v: hlo_counts(f, dtype) for v, f in fields.items()}
-        keys = list(HLO_PATTERNS)
-        print(f"{'variant':18s} " + " ".join(f"{k[:12]:>12s}" for k in keys))
-        for v in names:
-            print(f"{v:18s} " + " ".join(f"{counts[v][k]:12d}" for k in keys))
+        cols = list(HLO_PATTERNS)
+        print(f"{'package':8s} {'variant':18s} " + " ".join(f"{c[:12]:>12s}" for c in cols))
+        for p, v in keys:
+            counts = hlo_counts(fields[(p, v)], dtype)
+            print(f"{p:8s} {v:18s} " + " ".join(f"{counts[c]:12d}" for c in cols))
     return per
 
 

@@ -446,7 +446,8 @@ class EnsembleField(eqx.Module):
         )
         field = ensemble_field(_lean_group_field(self.fixed), part_g, groups)
         dtype = jax.tree.leaves(y)[0].dtype
-        t_case = groups.per_case(jnp.broadcast_to(jnp.asarray(t, dtype), (groups.count,)))
+        t_group = jnp.broadcast_to(jnp.asarray(t, dtype), (groups.count,))
+        t_case = jnp.broadcast_to(t_group[:, None], (groups.count, groups.size)).reshape(-1)
         frozen = jnp.zeros((self.n,), bool) if frozen is None else frozen
         return field(t_case, y, (frozen, None))
 
