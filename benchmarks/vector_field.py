@@ -11,8 +11,10 @@ difference to the default says what that part costs. Variants are timed interlea
     XLA_FLAGS=--xla_force_host_platform_device_count=1 taskset -c 1 \\
         python benchmarks/vector_field.py --cases 1024 [--against ../other-checkout]
 
-``--hlo`` also prints op counts of each variant's compiled evaluation (transcendental ops,
-gathers, selects, broadcasts, transposes, dtype conversions, float64 ops).
+``--profile`` prints the time per XLA kernel (fusion) of the first variant from a JAX
+profiler trace, with the JAX primitives each holds. ``--hlo`` prints op counts of each
+variant's compiled evaluation (transcendental ops, gathers, selects, broadcasts, transposes,
+dtype conversions, float64 ops).
 """
 
 from __future__ import annotations
@@ -129,20 +131,27 @@ def make_field(A, n: int, seed: int, name: str, dtype, group_size: int):
     )
 
 
-def compiled_loop(field, n_evals: int, dtype):
-    """A compiled function running ``n_evals`` evaluations, each on the state the previous
-    one moved (y <- y + h f(t, y)), so that no evaluation can be hoisted or merged."""
+def _loop_fn(n_evals: int, dtype):
     h = jnp.asarray(1e-4, dtype)
 
-    @eqx.filter_jit
     def run(field, y0):
+        # every group at its own time, as in a solve (groups take their own steps)
+        offsets = jnp.arange(field.groups.count, dtype=dtype) * jnp.asarray(1e-3, dtype)
+
         def body(i, y):
-            t = (i * h).astype(dtype)
+            t = (i * h).astype(dtype) + offsets
             dy = field(t, y)
             return jax.tree.map(lambda a, b: a + h * b, y, dy)
 
         return jax.lax.fori_loop(0, n_evals, body, y0)
 
+    return run
+
+
+def compiled_loop(field, n_evals: int, dtype):
+    """A compiled function running ``n_evals`` evaluations, each on the state the previous
+    one moved (y <- y + h f(t, y)), so that no evaluation can be hoisted or merged."""
+    run = eqx.filter_jit(_loop_fn(n_evals, dtype))
     y0 = field.initial_state(dtype)
     return lambda: jax.block_until_ready(run(field, y0))
 
@@ -170,6 +179,50 @@ def hlo_counts(field, dtype) -> dict[str, int]:
     return {k: len(re.findall(p, text)) for k, p in HLO_PATTERNS.items()}
 
 
+def profile(field, n_evals: int, dtype, top: int = 15) -> None:
+    """Time per compiled kernel (XLA fusion) of the evaluation loop from a JAX profiler
+    trace, with the operations (JAX primitive names) each fusion holds."""
+    import collections
+    import glob
+    import gzip
+    import json
+    import tempfile
+
+    run = compiled_loop(field, n_evals, dtype)
+    run()
+    params, static = eqx.partition(field, eqx.is_array)
+    loop = _loop_fn(n_evals, dtype)
+    y0 = field.initial_state(dtype)
+    text = (
+        jax.jit(lambda p, y: loop(eqx.combine(p, static), y)).lower(params, y0).compile().as_text()
+    )
+    with tempfile.TemporaryDirectory() as d:
+        jax.profiler.start_trace(d, create_perfetto_trace=True)
+        for _ in range(3):
+            run()
+        jax.profiler.stop_trace()
+        trace = json.load(gzip.open(glob.glob(f"{d}/**/*.trace.json.gz", recursive=True)[0]))
+    total = collections.Counter()
+    for e in trace["traceEvents"]:
+        name = e.get("name", "")
+        if name.startswith("while"):  # the loop itself: it holds all the others
+            continue
+        if e.get("ph") == "X" and re.search(rf"\n\s*(ROOT )?%{re.escape(name)} = ", text):
+            total[name] += e.get("dur", 0)
+    whole = sum(total.values())
+    print(f"\nkernels of the evaluation loop (share of {whole / 3e3:.2f} ms per run):")
+    for name, dur in total.most_common(top):
+        m = re.search(rf"%{re.escape(name)} = (\S+) .*?(calls=%(\S+?),|$)", text, re.M)
+        shape, ops = m.group(1) if m else "?", ""
+        if m and m.group(3):
+            body = re.search(rf"\n%{re.escape(m.group(3))} .*?\n(.*?)\n}}", text, re.S)
+            prims = collections.Counter(
+                re.findall(r'op_name="[^"]*/([^"/]+)"', body.group(1) if body else "")
+            )
+            ops = " ".join(f"{k}:{v}" for k, v in prims.most_common(8))
+        print(f"{dur / whole:6.1%} {name[:32]:32s} {shape[:24]:24s} {ops}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=1024)
@@ -180,6 +233,9 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--hlo", action="store_true")
+    ap.add_argument(
+        "--profile", action="store_true", help="time per XLA kernel of the first variant"
+    )
     ap.add_argument(
         "--against",
         default=None,
@@ -226,6 +282,8 @@ def main(argv=None):
         print("\nratio against / this (> 1: this checkout is faster)")
         for v in names:
             print(f"{v:18s} {per[('against', v)] / per[('this', v)]:12.2f}")
+    if args.profile:
+        profile(fields[("this", names[0])], args.evals, dtype)
     if args.hlo:
         print()
         cols = list(HLO_PATTERNS)

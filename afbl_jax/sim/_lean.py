@@ -69,7 +69,8 @@ class Groups(NamedTuple):
 
     def per_case(self, a) -> Array:
         """A per-group array (G,) repeated over each group's cases, shape (n,)."""
-        return jnp.repeat(a, self.size, axis=-1, total_repeat_length=self.count * self.size)
+        a = jnp.asarray(a)  # a broadcast, not jnp.repeat (a scatter and a gather on CPU)
+        return jnp.broadcast_to(a[..., None], (*a.shape, self.size)).reshape(*a.shape[:-1], -1)
 
     def view(self, tree):
         """Leaves (..., n) -> (..., G, g)."""
