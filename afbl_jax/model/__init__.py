@@ -42,8 +42,6 @@ from ._plant import full_plant_derivative as full_plant_derivative
 from ._plant import hover_input as hover_input
 from ._plant import make_plant as make_plant
 from ._plant import plant_derivative as plant_derivative
-from ._rotations import AttitudeTrig as AttitudeTrig
-from ._rotations import attitude_trig as attitude_trig
 from ._rotations import body_rates_from_euler_rates as body_rates_from_euler_rates
 from ._rotations import euler_rates_from_body_rates as euler_rates_from_body_rates
 from ._rotations import rotation_matrix as rotation_matrix

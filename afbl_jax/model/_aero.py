@@ -46,21 +46,16 @@ import jax.numpy as jnp
 
 from .._typing import PlantState, Vec3, Vec4
 from ._params import QuadrotorParams
-from ._rotations import AttitudeTrig, body_rates_from_euler_rates, rotation_matrix
+from ._rotations import body_rates_from_euler_rates, rotation_matrix
 
 
 def aerodynamic_wrench(
-    wind_velocity: Vec3,
-    state: PlantState,
-    drag_coefficient,
-    cp_offset,
-    trig: AttitudeTrig | None = None,
+    wind_velocity: Vec3, state: PlantState, drag_coefficient, cp_offset
 ) -> tuple[Vec3, Vec3]:
     """(force [N] earth frame, torque [N m] body axes) of the linear drag model.
-    Plant velocities (entries 6-8) are earth-frame in every plant layout; ``trig``: sin and
-    cos of the attitude (`afbl_jax.model.attitude_trig`; None: computed here)."""
+    Plant velocities (entries 6-8) are earth-frame in every plant layout."""
     force = drag_coefficient * (wind_velocity - state[6:9])
-    f_body = rotation_matrix(state[3], state[4], state[5], trig).T @ force
+    f_body = rotation_matrix(state[3], state[4], state[5]).T @ force
     zero = jnp.zeros_like(cp_offset)
     torque = jnp.stack([-cp_offset * f_body[1], cp_offset * f_body[0], zero])
     return force, torque
@@ -74,18 +69,13 @@ def _safe_norm(v) -> jnp.ndarray:
 
 
 def rotor_drag_wrench(
-    wind_velocity: Vec3,
-    state: PlantState,
-    vehicle: QuadrotorParams,
-    rotor_speeds: Vec4,
-    trig: AttitudeTrig | None = None,
+    wind_velocity: Vec3, state: PlantState, vehicle: QuadrotorParams, rotor_speeds: Vec4
 ) -> tuple[Vec3, Vec3]:
     """(force [N] earth frame, torque [N m] body axes) of the rotor-drag + parasitic-drag
-    model (module docstring) on a paper-layout ``state``; ``trig`` as in
-    `aerodynamic_wrench`."""
+    model (module docstring) on a paper-layout ``state``."""
     phi, theta, psi = state[3], state[4], state[5]
-    rot = rotation_matrix(phi, theta, psi, trig)
-    omega = body_rates_from_euler_rates(phi, theta, state[9:12], trig)
+    rot = rotation_matrix(phi, theta, psi)
+    omega = body_rates_from_euler_rates(phi, theta, state[9:12])
     v_air = rot.T @ (state[6:9] - wind_velocity)
     hubs = vehicle.rotor_positions()
     v_hub = v_air + jnp.cross(omega, hubs)
@@ -108,16 +98,11 @@ class AbstractAerodynamics(eqx.Module):
 
     @abc.abstractmethod
     def wrench(
-        self,
-        wind_velocity: Vec3,
-        state: PlantState,
-        vehicle: QuadrotorParams,
-        rotor_speeds: Vec4,
-        trig: AttitudeTrig | None = None,
+        self, wind_velocity: Vec3, state: PlantState, vehicle: QuadrotorParams, rotor_speeds: Vec4
     ) -> tuple[Vec3, Vec3]:
         """(force [N] earth frame, torque [N m] about the body axes) for the wind velocity
         [m/s] (earth frame), a paper-layout plant ``state`` and the applied rotor speeds
-        [rad/s]; ``trig``: sin and cos of the state's attitude (None: computed here)."""
+        [rad/s]."""
 
 
 class LinearDrag(AbstractAerodynamics):
@@ -125,11 +110,9 @@ class LinearDrag(AbstractAerodynamics):
 
     name: ClassVar[str] = "linear"
 
-    def wrench(self, wind_velocity, state, vehicle, rotor_speeds, trig=None):
+    def wrench(self, wind_velocity, state, vehicle, rotor_speeds):
         del rotor_speeds
-        return aerodynamic_wrench(
-            wind_velocity, state, vehicle.drag_coefficient, vehicle.cp_offset, trig
-        )
+        return aerodynamic_wrench(wind_velocity, state, vehicle.drag_coefficient, vehicle.cp_offset)
 
 
 class RotorDrag(AbstractAerodynamics):
@@ -137,8 +120,8 @@ class RotorDrag(AbstractAerodynamics):
 
     name: ClassVar[str] = "rotor_drag"
 
-    def wrench(self, wind_velocity, state, vehicle, rotor_speeds, trig=None):
-        return rotor_drag_wrench(wind_velocity, state, vehicle, rotor_speeds, trig)
+    def wrench(self, wind_velocity, state, vehicle, rotor_speeds):
+        return rotor_drag_wrench(wind_velocity, state, vehicle, rotor_speeds)
 
 
 AERODYNAMICS: dict[str, type[AbstractAerodynamics]] = {

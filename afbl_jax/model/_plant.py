@@ -46,12 +46,7 @@ import numpy as np
 
 from .._typing import Array, PlantState, Scalar, Vec3, Vec4
 from ._params import QuadrotorParams
-from ._rotations import (
-    AttitudeTrig,
-    body_rates_from_euler_rates,
-    euler_rates_from_body_rates,
-    thrust_direction,
-)
+from ._rotations import body_rates_from_euler_rates, euler_rates_from_body_rates, thrust_direction
 
 STATE_LAYOUT: tuple[str, ...] = (
     "x",
@@ -96,8 +91,8 @@ def channel_values(state: PlantState) -> tuple[Vec4, Vec4]:
     return state[..., CHANNEL_INDEX], state[..., CHANNEL_RATE_INDEX]
 
 
-def _translation(params: QuadrotorParams, state, u, mass, force, trig) -> Vec3:
-    acc_lin = thrust_direction(state[3], state[4], state[5], trig) * u[3] / mass + force / mass
+def _translation(params: QuadrotorParams, state, u, mass, force) -> Vec3:
+    acc_lin = thrust_direction(state[3], state[4], state[5]) * u[3] / mass + force / mass
     return acc_lin.at[2].add(-params.g)
 
 
@@ -109,7 +104,6 @@ def plant_derivative(
     mass: Scalar,
     force: Vec3,
     torque: Vec3,
-    trig: AttitudeTrig | None = None,
 ) -> PlantState:
     """Time derivative of the paper-layout state (eq. 15, corrected).
 
@@ -122,12 +116,10 @@ def plant_derivative(
         mass: true mass [kg] (vehicle plus payload).
         force: external force in the earth frame [N].
         torque: external torque on the (phi, theta, psi) channels [N m].
-        trig: sin and cos of (phi, theta, psi) (`afbl_jax.model.attitude_trig`; None:
-            computed here).
     """
     phid, thetad, psid = state[9], state[10], state[11]
     Ix, Iy, Iz, Jr, arm = params.Ix, params.Iy, params.Iz, params.Jr, params.arm_length
-    acc_lin = _translation(params, state, u, mass, force, trig)
+    acc_lin = _translation(params, state, u, mass, force)
     gyro = params.gyro_sign * Jr * omega_d
     phidd = thetad * psid * (Iy - Iz) / Ix - gyro / Ix * thetad + (arm * u[0] + torque[0]) / Ix
     thetadd = phid * psid * (Iz - Ix) / Iy + gyro / Iy * phid + (arm * u[1] + torque[1]) / Iy
@@ -143,7 +135,6 @@ def full_plant_derivative(
     mass: Scalar,
     force: Vec3,
     torque: Vec3,
-    trig: AttitudeTrig | None = None,
 ) -> PlantState:
     """Time derivative of the rigid-body state (`FULL_STATE_LAYOUT`).
 
@@ -155,12 +146,12 @@ def full_plant_derivative(
     """
     p, q, r = state[9], state[10], state[11]
     Ix, Iy, Iz, Jr, arm = params.Ix, params.Iy, params.Iz, params.Jr, params.arm_length
-    acc_lin = _translation(params, state, u, mass, force, trig)
+    acc_lin = _translation(params, state, u, mass, force)
     gyro = params.gyro_sign * Jr * omega_d
     pd = ((Iy - Iz) * q * r - gyro * q + arm * u[0] + torque[0]) / Ix
     qd = ((Iz - Ix) * p * r + gyro * p + arm * u[1] + torque[1]) / Iy
     rd = ((Ix - Iy) * p * q + u[2] + torque[2]) / Iz
-    etad = euler_rates_from_body_rates(state[3], state[4], state[9:12], trig)
+    etad = euler_rates_from_body_rates(state[3], state[4], state[9:12])
     return jnp.concatenate([state[6:9], etad, acc_lin, jnp.stack([pd, qd, rd])])
 
 
@@ -180,7 +171,6 @@ class AbstractPlant(eqx.Module):
         mass: Scalar,
         force: Vec3,
         torque: Vec3,
-        trig: AttitudeTrig | None = None,
     ) -> PlantState:
         """d state / dt (arguments as `plant_derivative`)."""
 
@@ -199,8 +189,8 @@ class PaperPlant(AbstractPlant):
     name: ClassVar[str] = "paper"
     layout: ClassVar[tuple[str, ...]] = STATE_LAYOUT
 
-    def derivative(self, params, state, u, omega_d, mass, force, torque, trig=None):
-        return plant_derivative(params, state, u, omega_d, mass, force, torque, trig)
+    def derivative(self, params, state, u, omega_d, mass, force, torque):
+        return plant_derivative(params, state, u, omega_d, mass, force, torque)
 
     def to_paper_layout(self, state):
         return state
@@ -215,8 +205,8 @@ class RigidBodyPlant(AbstractPlant):
     name: ClassVar[str] = "full"
     layout: ClassVar[tuple[str, ...]] = FULL_STATE_LAYOUT
 
-    def derivative(self, params, state, u, omega_d, mass, force, torque, trig=None):
-        return full_plant_derivative(params, state, u, omega_d, mass, force, torque, trig)
+    def derivative(self, params, state, u, omega_d, mass, force, torque):
+        return full_plant_derivative(params, state, u, omega_d, mass, force, torque)
 
     def to_paper_layout(self, state):
         etad = euler_rates_from_body_rates(state[3], state[4], state[9:12])

@@ -45,7 +45,6 @@ from ..model import (
     PaperPlant,
     QuadrotorParams,
     UnmodeledDynamics,
-    attitude_trig,
     diverged_from,
     hover_input,
     inputs_from_rotor_speeds_sq,
@@ -215,18 +214,10 @@ class ClosedLoop(eqx.Module):
         w_hover = vehicle.m * vehicle.g / (4.0 * vehicle.b)
         force, torque = sc.disturbance(t)
         air_state = self.plant.to_paper_layout(y.plant)
-        # sin/cos of the attitude once for the aerodynamics and the plant (entries 3-5 are the
-        # Euler angles in both layouts); materialised, XLA recomputed them in every consumer
-        trig = attitude_trig(y.plant[3], y.plant[4], y.plant[5])
-        if materialise:
-            trig = jax.lax.optimization_barrier(trig)
-        wind = sc.wind(t)
-        wind_force, wind_torque = self.aerodynamics.wrench(wind, air_state, vehicle, omega, trig)
+        wind_force, wind_torque = self.aerodynamics.wrench(sc.wind(t), air_state, vehicle, omega)
         force, torque = force + wind_force, torque + wind_torque
         mass = vehicle.m * sc.mass_factor(t)
-        dplant = self.plant.derivative(
-            vehicle, y.plant, u, omega_d(omega), mass, force, torque, trig
-        )
+        dplant = self.plant.derivative(vehicle, y.plant, u, omega_d(omega), mass, force, torque)
         e = ref.r - y.plant[CHANNEL_INDEX]
         du = u - hover_input(vehicle, mass)
         excess = (w_cmd - w_sat) / w_hover  # zero unless a rotor is saturated
