@@ -11,6 +11,11 @@ difference to the default says what that part costs. Variants are timed interlea
     XLA_FLAGS=--xla_force_host_platform_device_count=1 taskset -c 1 \\
         python benchmarks/vector_field.py --cases 1024 [--against ../other-checkout]
 
+With ``--against DIR`` the same variants of another checkout's package are timed in the
+same process, interleaved (on the loaded 2-core machine the absolute numbers of such a run
+differed from runs alone: compare the ratio and repeat, or alternate separate runs with
+``PYTHONPATH`` set to each checkout).
+
 ``--profile`` prints the time per XLA kernel (fusion) of the first variant from a JAX
 profiler trace, with the JAX primitives each holds. ``--hlo`` prints op counts of each
 variant's compiled evaluation (transcendental ops, gathers, selects, broadcasts, transposes,
