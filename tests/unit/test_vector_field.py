@@ -73,3 +73,23 @@ def test_digital_control_and_bad_groups_rejected(batch):
         A.ensemble_vector_field(A.AFBL(), batch.scenario, unmodeled=digital)
     with pytest.raises(ValueError, match="do not split into groups of 3"):
         A.ensemble_vector_field(A.AFBL(), batch.scenario, group_size=3)
+
+
+def test_profiling_script_runs_at_a_small_size(capsys):
+    """benchmarks/vector_field.py end to end on 8 cases: one timing per variant, and the
+    variants that remove work report it (no Dryden lines: fewer sin/cos in the HLO)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "vector_field.py"
+    spec = importlib.util.spec_from_file_location("vector_field_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    per = script.main(
+        ["--cases", "8", "--evals", "2", "--repeats", "1", "--variants", "default,no_wind", "--hlo"]
+    )
+    assert set(per) == {("this", "default"), ("this", "no_wind")}
+    assert all(np.isfinite(v) and v > 0 for v in per.values())
+    out = capsys.readouterr().out
+    rows = {line.split()[1]: line.split() for line in out.splitlines() if line.startswith("this ")}
+    assert int(rows["no_wind"][2]) < int(rows["default"][2])  # sin/cos count
