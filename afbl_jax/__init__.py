@@ -96,6 +96,7 @@ from .sim import SimulationResult as SimulationResult
 from .sim import Status as Status
 from .sim import configure_cpu_devices as configure_cpu_devices
 from .sim import ensemble_rms_norm as ensemble_rms_norm
+from .sim import ensemble_vector_field as ensemble_vector_field
 from .sim import simulate as simulate
 from .sim import simulate_batch as simulate_batch
 from .sim import status_message as status_message

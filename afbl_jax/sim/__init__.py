@@ -4,6 +4,7 @@ enumeration and CPU devices."""
 
 from ._batch import STRATEGIES as STRATEGIES
 from ._batch import case_layout as case_layout
+from ._batch import ensemble_vector_field as ensemble_vector_field
 from ._batch import simulate_batch as simulate_batch
 from ._closed_loop import COST_LAYOUT as COST_LAYOUT
 from ._closed_loop import CaseInputs as CaseInputs
@@ -15,6 +16,7 @@ from ._closed_loop import Signals as Signals
 from ._devices import configure_cpu_devices as configure_cpu_devices
 from ._digital import sample_instant as sample_instant
 from ._ensemble import INTEGRATORS as INTEGRATORS
+from ._ensemble import EnsembleField as EnsembleField
 from ._ensemble import ensemble_rms_norm as ensemble_rms_norm
 from ._ensemble import solve_group as solve_group
 from ._lean import Groups as Groups

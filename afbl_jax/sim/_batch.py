@@ -55,7 +55,7 @@ from ..model import (
 )
 from ..scenario import Scenario
 from ._closed_loop import CaseInputs, ClosedLoop, DivergenceLimits
-from ._ensemble import INTEGRATORS, solve_group
+from ._ensemble import INTEGRATORS, EnsembleField, solve_group
 from ._solve import get_solver, simulate
 
 STRATEGIES = ("vmap", "ensemble")
@@ -261,6 +261,62 @@ def _check_group_rates(
         )
 
 
+def _split_cases(loop: ClosedLoop, scenarios, vehicles, models, limits, axes, dtype):
+    """(part, fixed) of the batch's (loop, inputs) cast to ``dtype``: the leaves that differ
+    between cases (leading axis n) and those shared by all (unbatched)."""
+    inputs = CaseInputs(scenarios, vehicles, models, limits)
+    mask = (
+        ClosedLoop(
+            jax.tree.map(lambda _: axes["controller"], loop.controller),
+            *(
+                jax.tree.map(lambda _: axes["unmodeled"], part)
+                for part in (loop.plant, loop.actuators, loop.aerodynamics, loop.sampling)
+            ),
+        ),
+        CaseInputs(
+            jax.tree.map(lambda _: True, scenarios),
+            jax.tree.map(lambda _: axes["vehicles"], vehicles),
+            jax.tree.map(lambda _: axes["models"], models),
+            jax.tree.map(lambda _: False, limits),
+        ),
+    )
+    args = _cast((loop, inputs), dtype)
+    return _partition_cases(args, mask)
+
+
+def ensemble_vector_field(
+    controller: AbstractController,
+    scenarios: Scenario,
+    vehicles: QuadrotorParams | None = None,
+    models: QuadrotorParams | None = None,
+    *,
+    unmodeled: UnmodeledDynamics | None = None,
+    aerodynamics: AbstractAerodynamics | str | None = None,
+    dtype=None,
+    group_size: int | None = None,
+    limits: DivergenceLimits | None = None,
+) -> EnsembleField:
+    """The vector field `simulate_batch` (``strategy="ensemble"``, lean integrator, one
+    device, one chunk) evaluates on these cases, as an `EnsembleField` (call it on a state
+    with the case axis last: ``field(t, field.initial_state(dtype))``). Arguments as in
+    `simulate_batch`; ``group_size`` None: one group. For profiling the closed loop on real
+    batches (`benchmarks/vector_field.py`); continuous control only."""
+    vehicles = QuadrotorParams() if vehicles is None else vehicles
+    models = vehicles if models is None else models
+    limits = DivergenceLimits() if limits is None else limits
+    default = jnp.result_type(float)
+    dtype = np.dtype(default if dtype is None else dtype)
+    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled)
+    loop = ClosedLoop.make(controller, unmodeled, aerodynamics)
+    if loop.digital:
+        raise ValueError(
+            "ensemble_vector_field: continuous control only (the held command of digital "
+            "control is a discrete state of the solve); got digital control."
+        )
+    part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
+    return EnsembleField(part, fixed, n, n if group_size is None else int(group_size))
+
+
 def simulate_batch(
     controller: AbstractController,
     scenarios: Scenario,
@@ -375,24 +431,7 @@ def simulate_batch(
             None if chunk_size is None else int(chunk_size),
             None if group_size is None else int(group_size),
         )
-    inputs = CaseInputs(scenarios, vehicles, models, limits)
-    mask = (
-        ClosedLoop(
-            jax.tree.map(lambda _: axes["controller"], loop.controller),
-            *(
-                jax.tree.map(lambda _: axes["unmodeled"], part)
-                for part in (loop.plant, loop.actuators, loop.aerodynamics, loop.sampling)
-            ),
-        ),
-        CaseInputs(
-            jax.tree.map(lambda _: True, scenarios),
-            jax.tree.map(lambda _: axes["vehicles"], vehicles),
-            jax.tree.map(lambda _: axes["models"], models),
-            jax.tree.map(lambda _: False, limits),
-        ),
-    )
-    args = _cast((loop, inputs), dtype)
-    part, fixed = _partition_cases(args, mask)
+    part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
     return _run(
         part,
         fixed,

@@ -32,6 +32,8 @@ round-off). In both, the steps land on the union of the group's jump times.
 
 from __future__ import annotations
 
+from typing import Any
+
 import diffrax
 import equinox as eqx
 import jax
@@ -49,7 +51,7 @@ from ..metrics import (
 )
 from ..model import CHANNEL_INDEX
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
-from ._lean import Groups, lean_loop
+from ._lean import Groups, ensemble_field, lean_loop
 from ._solve import step_size_controller
 from ._status import STATUS_DIVERGED, STATUS_MAX_STEPS, STATUS_OK, status_from
 
@@ -397,6 +399,57 @@ def _lean_group_field(fixed):
         )
 
     return group_field
+
+
+class EnsembleField(eqx.Module):
+    """The vector field the lean ensemble integrator evaluates, on its own (profiling,
+    checks): ``field(t, y)`` is d/dt of the closed-loop state of all n cases, leaves of y with
+    the case axis last (``(..., n)``), at time t [s] (scalar, or per group (n // group_size,)),
+    exactly as `solve_group` with ``integrator="lean"`` evaluates it (groups of
+    ``group_size`` consecutive cases, case-invariant inputs evaluated once per group).
+
+    Attributes:
+        part: the inputs that differ between cases ((ClosedLoop, CaseInputs) leaves with
+            leading axis n).
+        fixed: the inputs shared by every case (unbatched).
+        n, group_size: number of cases and cases per group (static).
+    """
+
+    part: Any
+    fixed: Any
+    n: int = eqx.field(static=True)
+    group_size: int = eqx.field(static=True)
+
+    def __check_init__(self):
+        if self.group_size < 1 or self.n % self.group_size:
+            raise ValueError(
+                f"EnsembleField: {self.n} cases do not split into groups of {self.group_size}."
+            )
+
+    @property
+    def groups(self) -> Groups:
+        return Groups(self.n // self.group_size, self.group_size)
+
+    def initial_state(self, dtype=None):
+        """The cases' initial closed-loop states, leaves (..., n)."""
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        return _to_last(
+            _per_case(lambda lp, inp: lp.initial_state(inp, dtype), self.part, self.fixed, self.n)
+        )
+
+    def __call__(self, t, y, frozen=None):
+        """dy/dt at time t [s]; ``frozen`` (n,) bool: cases with zero derivatives (default
+        none)."""
+        groups = self.groups
+        part_g = jax.tree.map(
+            lambda x: x.reshape(groups.count, groups.size, *x.shape[1:]), self.part
+        )
+        field = ensemble_field(_lean_group_field(self.fixed), part_g, groups)
+        dtype = jax.tree.leaves(y)[0].dtype
+        t_group = jnp.broadcast_to(jnp.asarray(t, dtype), (groups.count,))
+        t_case = jnp.broadcast_to(t_group[:, None], (groups.count, groups.size)).reshape(-1)
+        frozen = jnp.zeros((self.n,), bool) if frozen is None else frozen
+        return field(t_case, y, (frozen, None))
 
 
 def _peak_sample(t, loop, inputs, state):

@@ -69,7 +69,8 @@ class Groups(NamedTuple):
 
     def per_case(self, a) -> Array:
         """A per-group array (G,) repeated over each group's cases, shape (n,)."""
-        return jnp.repeat(a, self.size, axis=-1, total_repeat_length=self.count * self.size)
+        a = jnp.asarray(a)  # a broadcast, not jnp.repeat (a scatter and a gather on CPU)
+        return jnp.broadcast_to(a[..., None], (*a.shape, self.size)).reshape(*a.shape[:-1], -1)
 
     def view(self, tree):
         """Leaves (..., n) -> (..., G, g)."""
@@ -154,6 +155,21 @@ def _prevbefore(t, n: int):
     return t
 
 
+def ensemble_field(group_field: Callable, inputs, groups: Groups) -> Callable:
+    """The vector field `lean_loop` integrates: ``field(t_case, y, args)`` on the whole
+    ensemble (leaves of y and args with the case axis last, ``t_case`` (n,) per-case times,
+    equal within a group), each group through ``group_field(t, y_g, args_g, inputs_g)``."""
+
+    def field(t_case, y, a):
+        t_group = t_case.reshape(groups.count, groups.size)[:, 0]
+        out = jax.vmap(group_field, in_axes=(0, -2, -2, 0), out_axes=-2)(
+            t_group, groups.view(y), groups.view(a), inputs
+        )
+        return groups.flat(out)
+
+    return field
+
+
 def lean_loop(
     group_field: Callable,
     inputs,
@@ -182,14 +198,7 @@ def lean_loop(
     t0 = jnp.asarray(t0)
     t1 = jnp.asarray(t1, t0.dtype)
 
-    def field(t_case, y, a):
-        t_group = t_case.reshape(G, groups.size)[:, 0]
-        out = jax.vmap(group_field, in_axes=(0, -2, -2, 0), out_axes=-2)(
-            t_group, groups.view(y), groups.view(a), inputs
-        )
-        return groups.flat(out)
-
-    term = diffrax.ODETerm(field)
+    term = diffrax.ODETerm(ensemble_field(group_field, inputs, groups))
     order = solver.error_order(term)
 
     def init_group(controller, y, a, inp):
