@@ -52,7 +52,8 @@ def compare_optimizers(
             log(
                 f"seed {seed} {method:<6}: objective {res.initial_loss:.4f} -> "
                 f"{res.final_loss:.4f} in {res.history[-1]['time_s']:.1f} s "
-                f"({len(res.history) - 1} iterations; compile {res.compile_s:.1f} s)"
+                f"({len(res.history) - 1} iterations; warm-up {res.compile_s:.1f} s: compile "
+                "and one discarded iteration)"
             )
             if out is not None:
                 d = Path(out) / f"{method}_seed{seed}"
