@@ -39,6 +39,7 @@
 # %%
 import json
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -131,8 +132,9 @@ for method in ("lbfgs", "adam", "cmaes"):
     print(f"{method:6s} objective {r.initial_loss:.4f} -> {r.final_loss:.4f}")
 from afbl_jax.plotting.tuning import plot_loss_vs_time
 
-plot_loss_vs_time(runs, "loss_vs_time_small.png", title="4 short cases, 4 iterations")
-plt.imshow(plt.imread("loss_vs_time_small.png"))
+small_fig = Path(tempfile.mkdtemp()) / "loss_vs_time_small.png"
+plot_loss_vs_time(runs, small_fig, title="4 short cases, 4 iterations")
+plt.imshow(plt.imread(small_fig))
 plt.axis("off")
 
 # %% [markdown]
