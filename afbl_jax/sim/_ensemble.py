@@ -447,7 +447,7 @@ class EnsembleField(eqx.Module):
         field = ensemble_field(_lean_group_field(self.fixed), part_g, groups)
         dtype = jax.tree.leaves(y)[0].dtype
         t_group = jnp.broadcast_to(jnp.asarray(t, dtype), (groups.count,))
-        t_case = jnp.broadcast_to(t_group[:, None], (groups.count, groups.size)).reshape(-1)
+        t_case = groups.per_case(t_group)
         frozen = jnp.zeros((self.n,), bool) if frozen is None else frozen
         return field(t_case, y, (frozen, None))
 
