@@ -1,6 +1,7 @@
 """``afbl falsify``: worst cases within the distribution's bounds by projected multi-start
 gradient ascent on the failure margin, against CMA-ES with the same budget; the most likely
-failure; optionally the sensitivities (DGSM, Sobol) of the margin and the attitude ISE."""
+failure (the ray's upper bound, then the design point by SLSQP); optionally the sensitivities
+(DGSM, Sobol) of the margin and the attitude ISE."""
 
 from __future__ import annotations
 
@@ -84,6 +85,13 @@ def register(sub) -> None:
     )
     p.add_argument("--seeds", type=int, default=1, help="search seeds (different starts)")
     p.add_argument(
+        "--design-budget",
+        type=int,
+        default=16,
+        help="gradient simulations of the design-point search (SLSQP on |z|^2 subject to "
+        "failing, from the ray's most likely failure; 0: the ray's point only)",
+    )
+    p.add_argument(
         "--sensitivity-samples",
         type=int,
         default=0,
@@ -101,6 +109,7 @@ def run(args) -> int:
         ("--starts", args.starts, 2),
         ("--budget", args.budget, 1),
         ("--seeds", args.seeds, 1),
+        ("--design-budget", args.design_budget, 0),
     ):
         if value < low:
             raise UsageError(f"{flag} must be >= {low}, got {value}.")
@@ -133,6 +142,7 @@ def run(args) -> int:
             seed=args.seed,
             attitude_limit=args.attitude_limit,
             altitude_limit=args.altitude_limit,
+            design_budget=args.design_budget,
             sensitivity_samples=n,
             rtol=args.rtol,
             atol=args.atol,

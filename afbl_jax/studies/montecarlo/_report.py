@@ -336,9 +336,22 @@ def rare_sections(out: str | Path) -> list[str]:
             ml = e.get("most_likely_failure")
             if ml:
                 md.append(
-                    f"{name}: most likely failure found at standard-normal distance "
-                    f"{ml['normal_distance']:.2f} ({ml['simulations']} simulations)."
+                    f"{name}: most likely failure along the ray to the worst case at "
+                    f"standard-normal distance {ml['normal_distance']:.2f} "
+                    f"({ml['simulations']} simulations)."
                 )
+            dp = e.get("design_point")
+            if dp:
+                top = ", ".join(f"{v['name']} {v['z']:+.2f}" for v in dp["top_variates"][:6])
+                md += [
+                    "",
+                    f"{name}: design point (SLSQP on |z|^2 subject to failing) at "
+                    f"standard-normal distance {dp['distance']:.2f} (ray: "
+                    f"{dp['ray_distance']:.2f}), exact margin there {dp['margin']:+.3e} "
+                    f"(forward re-solve), {dp['gradient_simulations']} gradient + "
+                    f"{dp['simulations']} forward simulations ({dp['message']}); largest |z|: "
+                    f"{top}.",
+                ]
         md += ["", "![search](figures/falsify_search.png)", ""]
         md += ["![worst cases](figures/falsify_worst_cases.png)", ""]
         if any(e.get("sensitivity") for e in data["controllers"].values()):
@@ -349,9 +362,18 @@ def rare_sections(out: str | Path) -> list[str]:
                     continue
                 for key, sd in sens.items():
                     st = np.asarray(sd["sobol"]["ST"], dtype=float)
+                    conf = np.asarray(sd["sobol"]["ST_conf"], dtype=float)
                     order = np.argsort(-np.nan_to_num(st, nan=-np.inf))[:5]
-                    top = ", ".join(f"{sd['sobol']['names'][i]} {st[i]:.2f}" for i in order)
-                    md.append(f"- {name}, {key}: largest total Sobol indices: {top}")
+                    top = ", ".join(
+                        f"{sd['sobol']['names'][i]} {st[i]:.2f} +- {conf[i]:.2f}" for i in order
+                    )
+                    nu = np.asarray(sd["dgsm"]["bound"], dtype=float)
+                    order = np.argsort(-np.nan_to_num(nu, nan=-np.inf))[:5]
+                    top_d = ", ".join(f"{sd['dgsm']['names'][i]} {nu[i]:.2g}" for i in order)
+                    md.append(
+                        f"- {name}, {key}: largest total Sobol indices (+- 95 % bootstrap "
+                        f"half-width): {top}; largest DGSM bounds nu / (pi^2 V): {top_d}"
+                    )
             md.append("")
     f = out / "rare_event.json"
     if f.exists():

@@ -14,13 +14,16 @@ from ._estimators import select_coordinates as select_coordinates
 from ._estimators import to_normal as to_normal
 from ._estimators import to_unit as to_unit
 from ._estimators import wilson as wilson
+from ._falsify import DesignPoint as DesignPoint
 from ._falsify import SearchResult as SearchResult
 from ._falsify import cmaes_search as cmaes_search
+from ._falsify import design_point_search as design_point_search
 from ._falsify import gradient_ascent as gradient_ascent
 from ._falsify import most_likely_failure as most_likely_failure
 from ._problem import MarginProblem as MarginProblem
 from ._sensitivity import dgsm as dgsm
 from ._sensitivity import sobol_indices as sobol_indices
+from ._sensitivity import sobol_indices_outputs as sobol_indices_outputs
 from ._study import ESTIMATORS as ESTIMATORS
 from ._study import FalsifyConfig as FalsifyConfig
 from ._study import RareEventConfig as RareEventConfig

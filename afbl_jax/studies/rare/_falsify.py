@@ -14,6 +14,10 @@
   with |z|): the smallest t in (0, 1] with margin(t z_f) > 0, by a batched grid then bisection.
   An upper bound of the distance of the most likely failure (the design point), not its
   optimum.
+- `design_point_search`: the most likely failure itself: minimise |z|^2 over the free variates
+  subject to a failing margin, by SciPy's SLSQP with the smooth margin's gradient as the
+  constraint's Jacobian, started from a failing point (the ray's); returns the failing point
+  of smallest |z| seen, re-checked by a forward solve (`DesignPoint`).
 
 Budgets and counts are in simulations (a gradient evaluation is one simulation with its
 adjoint; its cost in seconds is reported beside).
@@ -26,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import optax
+from scipy import optimize
 
 from ._estimators import to_normal, to_unit
 from ._problem import MarginProblem
@@ -238,3 +243,156 @@ def design_point(
 
 def _normal_pdf(z):
     return np.exp(-0.5 * z**2) / np.sqrt(2.0 * np.pi)
+
+
+Z_BOUND = 5.2
+"""|z| bound of the design-point search (= `to_normal`'s clipping of u into [1e-7, 1 - 1e-7])."""
+
+
+@dataclass
+class DesignPoint:
+    """Outcome of `design_point_search`.
+
+    Attributes:
+        u: variates of the design point (D,) (the discrete and fixed ones as at the start);
+            z: its standard-normal coordinates (D,); free: the variates searched (D,) bool.
+        distance: |z| over the free variates; start_distance: that of the start point.
+        margin: the exact failure margin at ``u`` from a forward solve (`MarginProblem.margin`;
+            > 0: fails).
+        gradient_simulations: simulations with their gradient used by the search;
+            simulations: forward solves of the re-check.
+        iterations: SLSQP iterations; message: SLSQP's (or the budget's) stop reason.
+        history: (gradient simulations so far, |z| of the free variates, smooth margin, exact
+            margin) of every point the search evaluated.
+    """
+
+    u: np.ndarray
+    z: np.ndarray
+    free: np.ndarray
+    distance: float
+    start_distance: float
+    margin: float
+    gradient_simulations: int
+    simulations: int
+    iterations: int
+    message: str
+    history: list = field(default_factory=list)
+
+    def to_dict(self, names=None, top: int = 10) -> dict:
+        """JSON-ready summary, with the ``top`` free variates of largest |z| (named by
+        ``names``)."""
+        order = np.argsort(-np.where(self.free, np.abs(self.z), -1.0))[: min(top, self.free.sum())]
+        return {
+            "start_distance": self.start_distance,
+            "distance": self.distance,
+            "margin": self.margin,
+            "gradient_simulations": self.gradient_simulations,
+            "simulations": self.simulations,
+            "iterations": self.iterations,
+            "message": self.message,
+            "top_variates": [
+                {
+                    "name": str(i) if names is None else names[i],
+                    "z": float(self.z[i]),
+                    "u": float(self.u[i]),
+                }
+                for i in order
+            ],
+            "history": self.history,
+        }
+
+
+class _BudgetSpent(Exception):
+    pass
+
+
+def design_point_search(
+    problem,
+    u_start: np.ndarray,
+    budget: int = 16,
+    level: float = 0.0,
+    recheck: int = 4,
+) -> DesignPoint:
+    """The most likely failure (design point) near a failing case ``u_start`` (D,).
+
+    Minimises ``|z_free|^2 / 2`` in standard-normal space (z = Phi^-1(u), the free variates of
+    ``problem``, each in [-Z_BOUND, Z_BOUND]; the discrete and fixed ones stay at
+    ``u_start``'s values) subject to ``smooth margin(z) >= level`` with SciPy's SLSQP (the
+    margin's gradient from `MarginProblem.value_and_grad`, chained through du/dz = phi(z)), at
+    most ``budget`` gradient simulations. Every evaluated point whose exact margin (from the
+    same solve) is > 0 is a candidate; the ``recheck`` nearest candidates and the start are
+    solved again forward (`MarginProblem.margin`) and the nearest one that fails there is
+    returned. The result therefore fails whenever the start does (it is the start at worst).
+
+    ``problem`` needs ``free`` (D,) bool, ``value_and_grad(u (n, D)) -> (smooth (n,), d
+    smooth / du (n, D), exact (n,))`` and ``margin(u (n, D)) -> (n,)``.
+    """
+    if budget < 1:
+        raise ValueError(f"budget must be >= 1 gradient simulation, got {budget}.")
+    free = np.asarray(problem.free, dtype=bool)
+    z0 = to_normal(np.asarray(u_start, dtype=np.float64))
+    start_distance = float(np.linalg.norm(z0[free]))
+    cache: dict[bytes, tuple[float, np.ndarray]] = {}
+    history: list = []
+    candidates: list[tuple[float, np.ndarray]] = []
+
+    def full(x):
+        z = z0.copy()
+        z[free] = x
+        return z
+
+    def evaluate(x):
+        key = np.asarray(x, dtype=np.float64).tobytes()
+        if key not in cache:
+            if len(history) >= budget:
+                raise _BudgetSpent
+            z = full(x)
+            value, grad_u, exact = problem.value_and_grad(to_unit(z)[None])
+            grad = grad_u[0] * _normal_pdf(z)  # du/dz = phi(z)
+            distance = float(np.linalg.norm(x))
+            history.append((len(history) + 1, distance, float(value[0]), float(exact[0])))
+            if exact[0] > 0:
+                candidates.append((distance, np.array(x, dtype=np.float64)))
+            cache[key] = (float(value[0]) - level, np.asarray(grad[free], dtype=np.float64))
+        return cache[key]
+
+    x0 = np.clip(z0[free], -Z_BOUND, Z_BOUND)
+    iterations, message = 0, ""
+    try:
+        res = optimize.minimize(
+            lambda x: 0.5 * float(x @ x),
+            x0,
+            jac=lambda x: np.asarray(x, dtype=np.float64),
+            method="SLSQP",
+            bounds=[(-Z_BOUND, Z_BOUND)] * int(free.sum()),
+            constraints=[
+                {
+                    "type": "ineq",
+                    "fun": lambda x: evaluate(x)[0],
+                    "jac": lambda x: evaluate(x)[1],
+                }
+            ],
+            options={"maxiter": budget, "ftol": 1e-6},
+        )
+        iterations, message = int(res.nit), str(res.message)
+    except _BudgetSpent:
+        message = f"gradient simulation budget ({budget}) spent"
+    candidates.sort(key=lambda c: c[0])
+    pick = [full(x) for _, x in candidates[:recheck]] + [z0]
+    margins = np.asarray(problem.margin(to_unit(np.stack(pick))))
+    ok = np.nonzero(margins > 0)[0]
+    i = int(ok[0]) if len(ok) else len(pick) - 1  # the start when nothing re-checks
+    z = pick[i]
+    return DesignPoint(
+        u=to_unit(z),
+        z=z,
+        free=free,
+        distance=float(np.linalg.norm(z[free])),
+        start_distance=start_distance,
+        margin=float(margins[i]),
+        gradient_simulations=len(history),
+        simulations=len(pick),
+        iterations=iterations,
+        message=message,
+        history=history,
+    )

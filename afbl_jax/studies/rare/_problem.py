@@ -22,6 +22,7 @@ import numpy as np
 from ...metrics import (
     FAILURE_ALTITUDE,
     FAILURE_ATTITUDE,
+    BatchMetrics,
     failure_margin,
     metrics_from_result,
     smooth_margin,
@@ -87,10 +88,17 @@ class MarginProblem:
     def _limits(self):
         return self.attitude_limit, self.altitude_limit
 
-    def metrics(self, u) -> object:
-        """`BatchMetrics` of the cases at variates u (n, D) (padded to whole ensemble groups)."""
+    def metrics(self, u) -> BatchMetrics:
+        """`BatchMetrics` of the cases at variates u (n, D) (padded to whole ensemble groups;
+        n = 0: empty fields, nothing solved)."""
         u = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+        if u.ndim != 2 or u.shape[1] != self.dimension:
+            raise ValueError(
+                f"variates must have shape (n, {self.dimension}) (one row per case), got {u.shape}."
+            )
         n = u.shape[0]
+        if n == 0:
+            return _empty_metrics(self.dtype)
         pad = -n % GROUP_SIZE
         if pad:
             u = np.concatenate([u, np.repeat(u[-1:], pad, axis=0)])
@@ -121,7 +129,8 @@ class MarginProblem:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(value (n,), its gradient (n, D) w.r.t. u, exact margin (n,)) at u (n, D) (clipped
         to [0, 1]), one float64 solve with its adjoint per point. ``output``: "margin" (the
-        smooth margin) or "ise_attitude" [rad^2 s]. Non-finite gradient entries are set to 0."""
+        smooth margin) or "ise_attitude" [rad^2 s]. Non-finite gradient entries are set to 0.
+        n = 0: empty arrays, nothing solved."""
         if output not in ("margin", "ise_attitude"):
             raise ValueError(f"output must be margin or ise_attitude, got {output!r}.")
         fn = _grad_function(
@@ -135,10 +144,23 @@ class MarginProblem:
             self.temperature,
             output,
         )
-        u = jnp.clip(jnp.asarray(u, dtype=jnp.float64), 0.0, 1.0)
-        value, grad, exact = fn(self.controller, u)
+        u = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+        if u.ndim != 2 or u.shape[1] != self.dimension:
+            raise ValueError(
+                f"variates must have shape (n, {self.dimension}) (one row per case), got {u.shape}."
+            )
+        if u.shape[0] == 0:
+            return np.zeros(0), np.zeros((0, self.dimension)), np.zeros(0)
+        value, grad, exact = fn(self.controller, jnp.asarray(u))
         self.gradient_simulations += int(u.shape[0])
         return np.asarray(value), np.asarray(grad), np.asarray(exact)
+
+
+def _empty_metrics(dtype) -> BatchMetrics:
+    """`BatchMetrics` of no cases, with the dtypes of the ensemble path's."""
+    f = jnp.zeros((0,), np.dtype("float64" if dtype is None else dtype))
+    i = jnp.zeros((0,), jnp.int32)
+    return BatchMetrics(f, f, f, f, i, f, i, i, f, f, f)
 
 
 @functools.lru_cache(maxsize=16)

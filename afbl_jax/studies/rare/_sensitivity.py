@@ -7,7 +7,8 @@
   index as well, by the same argument on the group's gradient).
 - `sobol_indices`: variance-based first-order and total Sobol indices from SALib (Saltelli
   sampling, Jansen / Saltelli estimators), per group of variates (SALib ``groups``), with
-  SALib's bootstrap confidence intervals.
+  SALib's bootstrap confidence intervals; `sobol_indices_outputs` gives several outputs from
+  the same simulations.
 """
 
 from __future__ import annotations
@@ -44,8 +45,20 @@ def sobol_indices(
 ) -> dict:
     """First-order (S1) and total (ST) Sobol indices of ``f: (n, D) -> (n,)`` on [0, 1]^D
     from SALib with ``n_base`` base samples (a power of 2; n_base (2 G + 2) evaluations for G
-    groups, or n_base (2 D + 2) without groups). Returns names, S1, S1_conf, ST, ST_conf and
-    the evaluations used."""
+    groups, or n_base (2 D + 2) without groups). Returns names, S1, S1_conf, ST, ST_conf (the
+    half-widths of SALib's 95 % bootstrap intervals) and the evaluations used."""
+    return sobol_indices_outputs(lambda x: {"f": f(x)}, dimension, n_base, seed, groups)["f"]
+
+
+def sobol_indices_outputs(
+    f: Callable[[np.ndarray], dict],
+    dimension: int,
+    n_base: int,
+    seed: int = 0,
+    groups=None,
+) -> dict:
+    """`sobol_indices` of several outputs from the same samples: ``f: (n, D) -> {name: (n,)}``
+    is called once on the whole Saltelli sample; returns ``{name: result}``."""
     from SALib.analyze import sobol as sobol_analyze
     from SALib.sample import sobol as sobol_sample
 
@@ -54,14 +67,18 @@ def sobol_indices(
     if groups is not None:
         problem["groups"] = [str(g) for g in groups]
     x = sobol_sample.sample(problem, n_base, calc_second_order=False, seed=seed)
-    y = np.asarray(f(x), dtype=np.float64)
-    res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
+    ys = f(x)
     out_names = list(dict.fromkeys(problem.get("groups", names)))
-    return {
-        "names": out_names,
-        "S1": np.asarray(res["S1"]),
-        "S1_conf": np.asarray(res["S1_conf"]),
-        "ST": np.asarray(res["ST"]),
-        "ST_conf": np.asarray(res["ST_conf"]),
-        "evaluations": int(x.shape[0]),
-    }
+    out = {}
+    for key, y in ys.items():
+        y = np.asarray(y, dtype=np.float64)
+        res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
+        out[key] = {
+            "names": out_names,
+            "S1": np.asarray(res["S1"]),
+            "S1_conf": np.asarray(res["S1_conf"]),
+            "ST": np.asarray(res["ST"]),
+            "ST_conf": np.asarray(res["ST_conf"]),
+            "evaluations": int(x.shape[0]),
+        }
+    return out

@@ -2,7 +2,8 @@
 
 `run_falsify`: per controller and per search seed, projected multi-start gradient ascent and the
 CMA-ES baseline with the same budget from the same starts (`afbl_jax.studies.rare.falsify`),
-the most likely failure along the ray to the worst failing case, the worst cases re-simulated
+the most likely failure along the ray to the worst failing case and from there the design point
+(`design_point_search`: SLSQP on |z|^2 subject to failing), the worst cases re-simulated
 (figures), and optionally the global sensitivities (DGSM from batched gradients, Sobol indices
 from SALib) of the failure margin and of the attitude ISE. Writes ``falsify.json`` (config,
 seed, versions, git revision: `afbl_jax.io.run_metadata`), ``worst_cases.parquet`` (the worst
@@ -33,6 +34,7 @@ from ...io import (
     gains_to_dict,
     run_metadata,
 )
+from ...metrics import failure_margin
 from ...model import AbstractController
 from ...sim import simulate
 from ..montecarlo import (
@@ -51,9 +53,15 @@ from ._estimators import (
     importance_sampling,
     to_unit,
 )
-from ._falsify import cmaes_search, design_point, gradient_ascent, most_likely_failure
+from ._falsify import (
+    cmaes_search,
+    design_point,
+    design_point_search,
+    gradient_ascent,
+    most_likely_failure,
+)
 from ._problem import MarginProblem
-from ._sensitivity import dgsm, sobol_indices
+from ._sensitivity import dgsm, sobol_indices_outputs
 
 ESTIMATORS = ("crude", "is", "ce", "ce-mixture")
 
@@ -71,6 +79,9 @@ class FalsifyConfig:
             distribution's ``seed``); seed: the case seed.
         learning_rate: Adam step on the variates; sigma: CMA-ES initial step.
         attitude_limit [rad], altitude_limit [m]: failure limits (None: divergence limits).
+        design_budget: gradient simulations of the design-point search
+            (`design_point_search`, from the ray's most likely failure; 0: the ray's point
+            only).
         sensitivity_samples: points for DGSM (gradients) and base samples for Sobol (power of
             2); 0: no sensitivities.
         rtol, atol, n_save: solver settings.
@@ -87,6 +98,7 @@ class FalsifyConfig:
     sigma: float = 0.3
     attitude_limit: float | None = None
     altitude_limit: float | None = None
+    design_budget: int = 16
     sensitivity_samples: int = 0
     rtol: float = 1e-6
     atol: float = 1e-8
@@ -107,6 +119,7 @@ class FalsifyConfig:
                     "sigma",
                     "attitude_limit",
                     "altitude_limit",
+                    "design_budget",
                     "sensitivity_samples",
                     "rtol",
                     "atol",
@@ -201,6 +214,20 @@ def run_falsify(config: FalsifyConfig, echo=print) -> dict:
                 "simulations": used,
                 "inputs": _inputs_row(problem, u_ml),
             }
+            if c.design_budget:
+                dp = design_point_search(problem, u_ml, c.design_budget)
+                entry["design_point"] = {
+                    "ray_distance": dist,
+                    **dp.to_dict(problem.names),
+                    "inputs": _inputs_row(problem, dp.u),
+                }
+                u_ml = dp.u
+                if echo is not None:
+                    echo(
+                        f"{name}: design point at standard-normal distance {dp.distance:.2f} "
+                        f"(ray {dist:.2f}), margin {dp.margin:+.2e}, "
+                        f"{dp.gradient_simulations} gradient + {dp.simulations} simulations"
+                    )
             replays[f"{name} most likely"] = (None, _replay(problem, u_ml))
         if c.sensitivity_samples:
             entry["sensitivity"] = _sensitivity(problem, c.sensitivity_samples, c.seed)
@@ -267,33 +294,56 @@ def _first_failure_table(runs) -> dict:
     return out
 
 
-def _sensitivity(problem: MarginProblem, n: int, seed: int) -> dict:
+def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) -> dict:
+    """DGSM (n gradient simulations per output) and Sobol indices (n (2 G + 2) forward
+    simulations, shared by both outputs) of the failure margin and the attitude ISE, in batches
+    of ``batch`` cases under a progress bar."""
+    from tqdm.auto import tqdm
+
     groups = variate_groups(problem.distribution)
     rng = np.random.default_rng(seed)
     u = rng.random((n, problem.dimension))
     out = {}
     for key in ("margin", "ise_attitude"):
         t0 = time.perf_counter()
-        value, grad, _ = problem.value_and_grad(u, output=key)
-        d = dgsm(grad, value, groups)
-        if key == "margin":
-            f = problem.margin
-        else:
+        values, grads = [], []
+        for k in tqdm(range(0, n, batch), desc=f"DGSM {key}", unit="batch"):
+            value, grad, _ = problem.value_and_grad(u[k : k + batch], output=key)
+            values.append(value)
+            grads.append(grad)
+        out[key] = {
+            "dgsm": dgsm(np.concatenate(grads), np.concatenate(values), groups),
+            "dgsm_seconds": time.perf_counter() - t0,
+        }
 
-            def f(x):
-                return np.asarray(problem.metrics(x).ise_attitude)
+    def f(x):
+        margins, ises = [], []
+        for k in tqdm(range(0, len(x), batch), desc="Sobol", unit="batch"):
+            m = problem.metrics(x[k : k + batch])
+            margins.append(
+                np.asarray(failure_margin(m, problem.attitude_limit, problem.altitude_limit))
+            )
+            ises.append(np.asarray(m.ise_attitude))
+        return {
+            "margin": _finite(np.concatenate(margins)),
+            "ise_attitude": _finite(np.concatenate(ises)),
+        }
 
-        sob = sobol_indices(_finite(f), problem.dimension, n, seed=seed, groups=groups)
-        out[key] = {"dgsm": d, "sobol": sob, "seconds": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    sob = sobol_indices_outputs(f, problem.dimension, n, seed=seed, groups=groups)
+    seconds = time.perf_counter() - t0
+    for key in out:
+        out[key]["sobol"] = sob[key]
+        out[key]["sobol_seconds"] = seconds
     return out
 
 
-def _finite(f):
-    def g(x):
-        y = np.asarray(f(x), dtype=np.float64)
-        return np.where(np.isfinite(y), y, np.nanmax(np.where(np.isfinite(y), y, np.nan)))
-
-    return g
+def _finite(y):
+    """Non-finite values (a solve that failed before its first sample) replaced by the largest
+    finite one."""
+    y = np.asarray(y, dtype=np.float64)
+    ok = np.isfinite(y)
+    return np.where(ok, y, np.max(y[ok]) if ok.any() else 0.0)
 
 
 @dataclass(frozen=True)
