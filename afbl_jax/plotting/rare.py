@@ -58,15 +58,19 @@ def figure_trajectories(runs: dict):
 
 
 def figure_sensitivity(rankings: dict, top: int = 12):
-    """Ranked bars per panel; ``rankings``: title -> (names, values, label) (largest first)."""
+    """Ranked bars per panel; ``rankings``: title -> (names, values, label) or (names, values,
+    label, half-widths of the values' intervals, drawn as error bars) (largest first; NaN
+    values last, without a bar)."""
     import matplotlib.pyplot as plt
 
     n = max(len(rankings), 1)
     fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.2), layout="constrained", squeeze=False)
-    for ax, (title, (names, values, label)) in zip(axes[0], rankings.items(), strict=False):
+    for ax, (title, entry) in zip(axes[0], rankings.items(), strict=False):
+        names, values, label = entry[:3]
         values = np.asarray(values, dtype=float)
         order = np.argsort(-np.nan_to_num(values, nan=-np.inf))[:top]
-        ax.barh(np.arange(len(order))[::-1], values[order])
+        err = None if len(entry) < 4 else np.asarray(entry[3], dtype=float)[order]
+        ax.barh(np.arange(len(order))[::-1], values[order], xerr=err, capsize=2)
         ax.set_yticks(np.arange(len(order))[::-1], [str(names[i]) for i in order], fontsize=7)
         ax.set_xlabel(label)
         ax.set_title(title, fontsize=9)

@@ -133,3 +133,23 @@ def test_margin_problem_on_an_empty_batch():
     assert p.simulations == 0 and p.gradient_simulations == 0
     with pytest.raises(ValueError, match="shape"):
         p.margin(np.zeros((3, p.dimension + 1)))
+
+
+def test_sobol_indices_of_several_outputs_share_one_sample():
+    """Each output's indices equal `sobol_indices` of that output alone; n (D + 2) evaluations
+    (first-order and total indices only), the function called once."""
+    c = np.array([0.5, 4.0, 0.0, 2.0])
+    calls = []
+
+    def f(x):
+        calls.append(len(x))
+        return {"lin": x @ c, "sq": (x @ c) ** 2 / 40 + 3 * x[:, 2]}
+
+    both = rare.sobol_indices_outputs(f, 4, 256, seed=3)
+    assert calls == [256 * 6]
+    for key, g in (("lin", lambda x: x @ c), ("sq", lambda x: (x @ c) ** 2 / 40 + 3 * x[:, 2])):
+        one = rare.sobol_indices(g, 4, 256, seed=3)
+        assert one["evaluations"] == both[key]["evaluations"] == 256 * 6
+        for k in ("ST", "S1", "ST_conf"):
+            np.testing.assert_allclose(both[key][k], one[k], rtol=1e-12)
+    assert both["sq"]["ST"][2] > 0.1 > 0.01 > both["lin"]["ST"][2]  # x2 only enters "sq"

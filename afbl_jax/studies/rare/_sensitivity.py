@@ -44,9 +44,10 @@ def sobol_indices(
     groups=None,
 ) -> dict:
     """First-order (S1) and total (ST) Sobol indices of ``f: (n, D) -> (n,)`` on [0, 1]^D
-    from SALib with ``n_base`` base samples (a power of 2; n_base (2 G + 2) evaluations for G
-    groups, or n_base (2 D + 2) without groups). Returns names, S1, S1_conf, ST, ST_conf (the
-    half-widths of SALib's 95 % bootstrap intervals) and the evaluations used."""
+    from SALib with ``n_base`` base samples (a power of 2; n_base (G + 2) evaluations for G
+    groups, or n_base (D + 2) without groups: first-order and total indices only). Returns
+    names, S1, S1_conf, ST, ST_conf (the half-widths of SALib's 95 % bootstrap intervals) and
+    the evaluations used."""
     return sobol_indices_outputs(lambda x: {"f": f(x)}, dimension, n_base, seed, groups)["f"]
 
 
