@@ -200,6 +200,7 @@ def test_bench_cli_smoke(tmp_path, capsys):
         ),
         (["falsify", "--budget", "4", "--starts", "8"], "--budget (4) must be >= --starts (8)"),
         (["falsify", "--sensitivity-samples", "48"], "must be 0 or a power of 2, got 48"),
+        (["falsify", "--design-budget", "-1"], "--design-budget must be >= 0, got -1"),
     ],
 )
 def test_rare_failure_cli_rejects_bad_input(tmp_path, capsys, argv, message):

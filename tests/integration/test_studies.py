@@ -240,6 +240,8 @@ def test_rare_failures_script(tmp_path):
         "2",
         "--budget",
         "4",
+        "--design-budget",
+        "3",
         "--attitude-limit",
         "0.2",
         "--distribution",
@@ -250,8 +252,15 @@ def test_rare_failures_script(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     doc = json.loads((tmp_path / "f" / "falsify.json").read_text())
     assert doc["config"]["budget"] == 4 and doc["git_revision"]
-    searches = doc["falsify"]["controllers"]["afbl"]["searches"]
+    assert doc["config"]["design_budget"] == 3
+    entry = doc["falsify"]["controllers"]["afbl"]
+    searches = entry["searches"]
     assert searches[0]["gradient"]["simulations"] <= 4 and searches[0]["cmaes"]["simulations"] <= 4
+    if "most_likely_failure" in entry:  # a failing case was found: the design point fails too
+        dp = entry["design_point"]
+        assert dp["margin"] > 0 and dp["gradient_simulations"] <= 3
+        assert dp["distance"] <= dp["ray_distance"] + 1e-9
+        assert dp["ray_distance"] == entry["most_likely_failure"]["normal_distance"]
     for name in ("worst_cases.parquet", "rare_report.md", "figures/falsify_search.png"):
         assert (tmp_path / "f" / name).exists(), name
     r = _run(

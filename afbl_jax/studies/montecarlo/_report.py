@@ -367,13 +367,19 @@ def rare_sections(out: str | Path) -> list[str]:
                     top = ", ".join(
                         f"{sd['sobol']['names'][i]} {st[i]:.2f} +- {conf[i]:.2f}" for i in order
                     )
-                    nu = np.asarray(sd["dgsm"]["bound"], dtype=float)
-                    order = np.argsort(-np.nan_to_num(nu, nan=-np.inf))[:5]
-                    top_d = ", ".join(f"{sd['dgsm']['names'][i]} {nu[i]:.2g}" for i in order)
-                    md.append(
+                    line = (
                         f"- {name}, {key}: largest total Sobol indices (+- 95 % bootstrap "
-                        f"half-width): {top}; largest DGSM bounds nu / (pi^2 V): {top_d}"
+                        f"half-width): {top}"
                     )
+                    if sd.get("dgsm"):
+                        nu = np.asarray(sd["dgsm"]["bound"], dtype=float)
+                        order = np.argsort(-np.nan_to_num(nu, nan=-np.inf))[:5]
+                        line += "; largest DGSM bounds nu / (pi^2 V): " + ", ".join(
+                            f"{sd['dgsm']['names'][i]} {nu[i]:.2g}" for i in order
+                        )
+                    if "failures" in sd:
+                        line += f" ({sd['failures']} failures among the Sobol samples)"
+                    md.append(line)
             md.append("")
     f = out / "rare_event.json"
     if f.exists():

@@ -46,8 +46,8 @@ def sobol_indices(
     """First-order (S1) and total (ST) Sobol indices of ``f: (n, D) -> (n,)`` on [0, 1]^D
     from SALib with ``n_base`` base samples (a power of 2; n_base (G + 2) evaluations for G
     groups, or n_base (D + 2) without groups: first-order and total indices only). Returns
-    names, S1, S1_conf, ST, ST_conf (the half-widths of SALib's 95 % bootstrap intervals) and
-    the evaluations used."""
+    names, S1, S1_conf, ST, ST_conf (the half-widths of SALib's 95 % bootstrap intervals), the
+    evaluations used and the mean and variance of f over them."""
     return sobol_indices_outputs(lambda x: {"f": f(x)}, dimension, n_base, seed, groups)["f"]
 
 
@@ -81,5 +81,7 @@ def sobol_indices_outputs(
             "ST": np.asarray(res["ST"]),
             "ST_conf": np.asarray(res["ST_conf"]),
             "evaluations": int(x.shape[0]),
+            "mean": float(np.mean(y)),
+            "variance": float(np.var(y)),
         }
     return out

@@ -263,6 +263,14 @@ def run_falsify(config: FalsifyConfig, echo=print) -> dict:
                     "total Sobol index [-] (95 % bootstrap interval)",
                     d["sobol"]["ST_conf"],
                 )
+            d = sens.get("failure")
+            if d:
+                rankings[f"{name}: failure indicator, Sobol S_T"] = (
+                    d["sobol"]["names"],
+                    d["sobol"]["ST"],
+                    "total Sobol index [-] (95 % bootstrap interval)",
+                    d["sobol"]["ST_conf"],
+                )
     if rankings:
         _save(figure_sensitivity(rankings), fig_dir / "sensitivity.png")
         atomic_write_text(
@@ -303,9 +311,11 @@ derivative of the outcome; their DGSM is reported as NaN (their Sobol indices st
 
 
 def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) -> dict:
-    """DGSM (n gradient simulations per output; NaN for `EVENT_TIME_GROUPS`) and Sobol indices
-    (n (G + 2) forward simulations, shared by both outputs) of the failure margin and the
-    attitude ISE, in batches of ``batch`` cases under a progress bar."""
+    """DGSM (n gradient simulations per output; NaN for `EVENT_TIME_GROUPS`) of the smooth
+    failure margin and the attitude ISE, and Sobol indices (n (G + 2) forward simulations,
+    shared by all outputs) of the exact failure margin, the attitude ISE and the failure
+    indicator (margin > 0; no DGSM: its gradient is 0 almost everywhere), in batches of
+    ``batch`` cases under a progress bar."""
     from tqdm.auto import tqdm
 
     groups = variate_groups(problem.distribution)
@@ -330,18 +340,22 @@ def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) ->
         margins, ises = [], []
         for k in tqdm(range(0, len(x), batch), desc="Sobol", unit="batch"):
             m = problem.metrics(x[k : k + batch])
-            margins.append(
-                np.asarray(failure_margin(m, problem.attitude_limit, problem.altitude_limit))
-            )
+            limits = (problem.attitude_limit, problem.altitude_limit)
+            margins.append(np.asarray(failure_margin(m, *limits)))
             ises.append(np.asarray(m.ise_attitude))
+        margin = np.concatenate(margins)
         return {
-            "margin": _finite(np.concatenate(margins)),
+            "margin": _finite(margin),
             "ise_attitude": _finite(np.concatenate(ises)),
+            "failure": (margin > 0).astype(np.float64),
         }
 
     t0 = time.perf_counter()
     sob = sobol_indices_outputs(f, problem.dimension, n, seed=seed, groups=groups)
     seconds = time.perf_counter() - t0
+    out["failure"] = {
+        "failures": int(round(sob["failure"]["mean"] * sob["failure"]["evaluations"]))
+    }
     for key in out:
         out[key]["sobol"] = sob[key]
         out[key]["sobol_seconds"] = seconds
