@@ -64,8 +64,14 @@ def figure_sensitivity(rankings: dict, top: int = 12):
     import matplotlib.pyplot as plt
 
     n = max(len(rankings), 1)
-    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.2), layout="constrained", squeeze=False)
-    for ax, (title, entry) in zip(axes[0], rankings.items(), strict=False):
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(4.6 * cols, 4.2 * rows), layout="constrained", squeeze=False
+    )
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    for ax, (title, entry) in zip(axes.flat, rankings.items(), strict=False):
         names, values, label = entry[:3]
         values = np.asarray(values, dtype=float)
         order = np.argsort(-np.nan_to_num(values, nan=-np.inf))[:top]

@@ -66,6 +66,7 @@ def test_design_point_of_a_linear_limit_state():
     np.testing.assert_allclose(np.concatenate(p.seen)[:, 4], u_start[4], rtol=1e-12)
     assert r.start_distance > 1.5 * beta
     assert r.gradient_simulations <= 30 and r.simulations == p.forward - 1
+    assert 1 <= r.iterations <= r.gradient_simulations
     top = r.to_dict(names=list("abcde"), top=3)["top_variates"]
     assert [v["name"] for v in top] == ["b", "d", "a"]  # largest |z|: |a| ordered
 
@@ -143,7 +144,7 @@ def test_sobol_indices_of_several_outputs_share_one_sample():
 
     def f(x):
         calls.append(len(x))
-        return {"lin": x @ c, "sq": (x @ c) ** 2 / 40 + 3 * x[:, 2]}
+        return {"lin": x @ c, "sq": (x @ c) ** 2 / 40 + 3 * x[:, 2], "none": np.zeros(len(x))}
 
     both = rare.sobol_indices_outputs(f, 4, 256, seed=3)
     assert calls == [256 * 6]
@@ -153,3 +154,23 @@ def test_sobol_indices_of_several_outputs_share_one_sample():
         for k in ("ST", "S1", "ST_conf"):
             np.testing.assert_allclose(both[key][k], one[k], rtol=1e-12)
     assert both["sq"]["ST"][2] > 0.1 > 0.01 > both["lin"]["ST"][2]  # x2 only enters "sq"
+    assert np.all(np.isnan(both["none"]["ST"])) and both["none"]["variance"] == 0  # constant
+
+
+def test_sensitivity_figure_panels_with_intervals_and_missing_values():
+    import matplotlib.pyplot as plt
+
+    from afbl_jax.plotting.rare import figure_sensitivity
+
+    names = ["a", "b", "c"]
+    rankings = {
+        f"panel {k}": (names, [0.1, np.nan, 0.5], "index [-]", [0.05, np.nan, 0.1])
+        for k in range(4)
+    }
+    rankings["no intervals"] = (names, [1.0, 2.0, 3.0], "bound [-]")
+    fig = figure_sensitivity(rankings)
+    shown = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(shown) == 5 and len(fig.axes) == 6  # 2 rows of 3, the last one hidden
+    labels = [t.get_text() for t in shown[0].get_yticklabels()]
+    assert labels == ["c", "a", "b"]  # ranked: largest first (at the top), NaN last
+    plt.close(fig)

@@ -357,7 +357,11 @@ def design_point_search(
         return cache[key]
 
     x0 = np.clip(z0[free], -Z_BOUND, Z_BOUND)
-    iterations, message = 0, ""
+    iterations, message = [0], ""
+
+    def count(_):
+        iterations[0] += 1
+
     try:
         res = optimize.minimize(
             lambda x: 0.5 * float(x @ x),
@@ -373,8 +377,9 @@ def design_point_search(
                 }
             ],
             options={"maxiter": budget, "ftol": 1e-6},
+            callback=count,
         )
-        iterations, message = int(res.nit), str(res.message)
+        message = str(res.message)
     except _BudgetSpent:
         message = f"gradient simulation budget ({budget}) spent"
     candidates.sort(key=lambda c: c[0])
@@ -392,7 +397,7 @@ def design_point_search(
         margin=float(margins[i]),
         gradient_simulations=len(history),
         simulations=len(pick),
-        iterations=iterations,
+        iterations=iterations[0],
         message=message,
         history=history,
     )

@@ -59,7 +59,8 @@ def sobol_indices_outputs(
     groups=None,
 ) -> dict:
     """`sobol_indices` of several outputs from the same samples: ``f: (n, D) -> {name: (n,)}``
-    is called once on the whole Saltelli sample; returns ``{name: result}``."""
+    is called once on the whole Saltelli sample; returns ``{name: result}`` (NaN indices for an
+    output that is constant over the sample)."""
     from SALib.analyze import sobol as sobol_analyze
     from SALib.sample import sobol as sobol_sample
 
@@ -73,7 +74,11 @@ def sobol_indices_outputs(
     out = {}
     for key, y in ys.items():
         y = np.asarray(y, dtype=np.float64)
-        res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
+        if np.var(y) > 0:
+            res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
+        else:  # a constant output (e.g. no failure among the samples): no indices
+            nan = np.full(len(out_names), np.nan)
+            res = {"S1": nan, "S1_conf": nan, "ST": nan, "ST_conf": nan}
         out[key] = {
             "names": out_names,
             "S1": np.asarray(res["S1"]),

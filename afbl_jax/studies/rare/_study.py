@@ -246,8 +246,28 @@ def run_falsify(config: FalsifyConfig, echo=print) -> dict:
         figure_trajectories({k: r for k, (_, r) in replays.items()}),
         fig_dir / "falsify_worst_cases.png",
     )
+    rankings = sensitivity_rankings(summary["controllers"])
+    if rankings:
+        _save(figure_sensitivity(rankings), fig_dir / "sensitivity.png")
+        atomic_write_text(
+            json.dumps(
+                {n: e.get("sensitivity") for n, e in summary["controllers"].items()},
+                indent=2,
+                default=_json,
+            )
+            + "\n",
+            out / "sensitivity.json",
+        )
+    write_rare_report(out)
+    return summary
+
+
+def sensitivity_rankings(controllers: dict) -> dict:
+    """The panels of the sensitivity figure (`afbl_jax.plotting.rare.figure_sensitivity`) from
+    the per-controller summaries (``falsify.json``'s ``falsify.controllers``, or
+    ``sensitivity.json``'s entries under a ``sensitivity`` key)."""
     rankings = {}
-    for name, entry in summary["controllers"].items():
+    for name, entry in controllers.items():
         sens = entry.get("sensitivity")
         if sens:
             for key, label in (("margin", "failure margin"), ("ise_attitude", "ISE attitude")):
@@ -271,19 +291,7 @@ def run_falsify(config: FalsifyConfig, echo=print) -> dict:
                     "total Sobol index [-] (95 % bootstrap interval)",
                     d["sobol"]["ST_conf"],
                 )
-    if rankings:
-        _save(figure_sensitivity(rankings), fig_dir / "sensitivity.png")
-        atomic_write_text(
-            json.dumps(
-                {n: e.get("sensitivity") for n, e in summary["controllers"].items()},
-                indent=2,
-                default=_json,
-            )
-            + "\n",
-            out / "sensitivity.json",
-        )
-    write_rare_report(out)
-    return summary
+    return rankings
 
 
 def _first_failure_table(runs) -> dict:
