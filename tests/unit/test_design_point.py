@@ -109,6 +109,15 @@ def test_design_point_always_fails(budget):
     assert r.gradient_simulations <= budget
 
 
+def test_design_point_without_free_variates_is_the_start():
+    g, grad, _ = _linear(2.0, [1.0])
+    p = ToyLimitState(g, grad, 1)  # its only variate is the discrete one
+    u = np.array([0.99])
+    r = rare.design_point_search(p, u, budget=4)
+    assert r.gradient_simulations == 0 and r.message == "no free variates"
+    assert r.margin > 0 and r.distance == 0.0 and r.u[0] == pytest.approx(0.99)
+
+
 def test_design_point_rejects_a_zero_budget():
     g, grad, _ = _linear(2.0, [1.0])
     with pytest.raises(ValueError, match="budget"):

@@ -358,11 +358,15 @@ def design_point_search(
 
     x0 = np.clip(z0[free], -Z_BOUND, Z_BOUND)
     iterations, message = [0], ""
+    if not free.any():
+        budget, message = 0, "no free variates"
 
     def count(_):
         iterations[0] += 1
 
     try:
+        if not budget:
+            raise _BudgetSpent
         res = optimize.minimize(
             lambda x: 0.5 * float(x @ x),
             x0,
@@ -381,7 +385,7 @@ def design_point_search(
         )
         message = str(res.message)
     except _BudgetSpent:
-        message = f"gradient simulation budget ({budget}) spent"
+        message = message or f"gradient simulation budget ({budget}) spent"
     candidates.sort(key=lambda c: c[0])
     pick = [full(x) for _, x in candidates[:recheck]] + [z0]
     margins = np.asarray(problem.margin(to_unit(np.stack(pick))))
