@@ -41,6 +41,7 @@ from ..montecarlo import (
     Distribution,
     cases_from_variates,
     default_distribution,
+    discrete_variates,
     draw_variates,
     fixed_variates,
     variate_groups,
@@ -275,7 +276,7 @@ def sensitivity_rankings(controllers: dict) -> dict:
                 rankings[f"{name}: {label}, DGSM bound"] = (
                     d["dgsm"]["names"],
                     d["dgsm"]["bound"],
-                    "nu / (pi^2 V) [-] (event times: not differentiable)",
+                    "nu / (pi^2 V) [-] (not for event times, discrete)",
                 )
                 rankings[f"{name}: {label}, Sobol S_T"] = (
                     d["sobol"]["names"],
@@ -319,7 +320,8 @@ derivative of the outcome; their DGSM is reported as NaN (their Sobol indices st
 
 
 def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) -> dict:
-    """DGSM (n gradient simulations per output; NaN for `EVENT_TIME_GROUPS`) of the smooth
+    """DGSM (n gradient simulations per output; NaN for `EVENT_TIME_GROUPS` and for discrete
+    variates, whose category does not move with a gradient) of the smooth
     failure margin and the attitude ISE, and Sobol indices (n (G + 2) forward simulations,
     shared by all outputs) of the exact failure margin, the attitude ISE and the failure
     indicator (margin > 0; no DGSM: its gradient is 0 almost everywhere), in batches of
@@ -327,6 +329,8 @@ def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) ->
     from tqdm.auto import tqdm
 
     groups = variate_groups(problem.distribution)
+    discrete = discrete_variates(problem.distribution)
+    no_gradient = {*EVENT_TIME_GROUPS, *(g for g, k in zip(groups, discrete, strict=True) if k)}
     rng = np.random.default_rng(seed)
     u = rng.random((n, problem.dimension))
     out = {}
@@ -338,10 +342,10 @@ def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) ->
             values.append(value)
             grads.append(grad)
         d = dgsm(np.concatenate(grads), np.concatenate(values), groups)
-        skip = np.isin(d["names"], EVENT_TIME_GROUPS)
+        skip = np.array([g in no_gradient for g in d["names"]])
         d["nu"] = np.where(skip, np.nan, d["nu"])
         d["bound"] = np.where(skip, np.nan, d["bound"])
-        d["not_differentiable"] = [n for n in d["names"] if n in EVENT_TIME_GROUPS]
+        d["not_differentiable"] = [n for n in d["names"] if n in no_gradient]
         out[key] = {"dgsm": d, "dgsm_seconds": time.perf_counter() - t0}
 
     def f(x):
