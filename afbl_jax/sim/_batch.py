@@ -218,7 +218,8 @@ def _partition_cases(args, batched_mask):
     """Split ``args`` into leaves that differ between cases (leading axis = cases) and leaves
     that are the same for every case (their first row, unbatched). ``batched_mask``: a pytree
     of bools, True for leaves with a case axis. Equality is checked on concrete values; traced
-    batched leaves count as differing."""
+    batched leaves count as differing. When every case is the same, the first batched leaf
+    stays in the differing part (it carries the case axis for the vectorised solve)."""
 
     def differs(x, batched):
         if not batched:
@@ -229,6 +230,12 @@ def _partition_cases(args, batched_mask):
         return not np.array_equal(c, np.broadcast_to(c[:1], c.shape), equal_nan=True)
 
     specs = jax.tree.map(differs, args, batched_mask)
+    leaves, treedef = jax.tree.flatten(specs)
+    if not any(leaves):  # identical cases: keep one batched leaf per case (the case axis)
+        batched = jax.tree.leaves(jax.tree.map(lambda _, b: b, args, batched_mask))
+        if any(batched):
+            leaves[batched.index(True)] = True
+            specs = jax.tree.unflatten(treedef, leaves)
     part, fixed = eqx.partition(args, specs)
     fixed = jax.tree.map(
         lambda x, b: x[0] if (b and x is not None) else x,

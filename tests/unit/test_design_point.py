@@ -183,3 +183,25 @@ def test_sensitivity_figure_panels_with_intervals_and_missing_values():
     labels = [t.get_text() for t in shown[0].get_yticklabels()]
     assert labels == ["c", "a", "b"]  # ranked: largest first (at the top), NaN last
     plt.close(fig)
+
+
+def test_margin_of_one_case_and_of_identical_cases():
+    """A batch whose cases are all the same (one case padded to an ensemble group) solves, and
+    gives that case's margin as it has among other cases."""
+    dist = mc.Distribution.from_dict(
+        {
+            "time": {"t1": 0.5},
+            "pulses": {"start": [0.1, 0.4]},
+            "gust": {"start": [0.1, 0.4]},
+            "payload": {"attach_time": [0.1, 0.4]},
+            "turbulence": {"n_frequencies": 2},
+        }
+    )
+    p = rare.MarginProblem(A.AFBL(), dist, n_save=11, attitude_limit=0.05)
+    u = np.asarray(mc.draw_variates(dist, 3, 0))
+    alone = p.margin(u[:1])
+    both = p.margin(np.concatenate([u[:1], u[:1]]))
+    mixed = p.margin(u)
+    assert alone.shape == (1,) and np.isfinite(alone[0])
+    np.testing.assert_allclose(both, alone[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(alone[0], mixed[0], rtol=0, atol=1e-5)  # steps shared in a group
