@@ -5,9 +5,10 @@ CMA-ES baseline with the same budget from the same starts (`afbl_jax.studies.rar
 the most likely failure along the ray to the worst failing case and from there the design point
 (`design_point_search`: SLSQP on |z|^2 subject to failing), the worst cases re-simulated
 (figures), and optionally the global sensitivities (DGSM from batched gradients, Sobol indices
-from SALib) of the failure margin and of the attitude ISE. Writes ``falsify.json`` (config,
-seed, versions, git revision: `afbl_jax.io.run_metadata`), ``worst_cases.parquet`` (the worst
-case of every search, its inputs and margin), ``sensitivity.json`` and figures.
+from SALib) of the failure margin and of the attitude ISE, and the Sobol indices of the failure
+indicator. Writes ``falsify.json`` (config, seed, versions, git revision:
+`afbl_jax.io.run_metadata`), ``worst_cases.parquet`` (the worst case of every search, its
+inputs and margin), ``sensitivity.json`` and figures.
 
 `run_rare_event`: a failure probability per controller by ``"crude"``, ``"is"`` (importance
 sampling centred on the most likely failure found by a short gradient search), ``"ce"``
