@@ -489,25 +489,35 @@ def _freeze(cases: _Cases, t, y, diverged, groups: Groups) -> _Cases:
     return _Cases(cases.frozen | new, t_frozen, cases.peaks)
 
 
-def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
-    """Fold every save time ts[j] <= t_hi[i] not yet taken by group i into the running peaks
-    (``peaks`` = (next index per group (G,), maxima (n, 3))); ``sample_at(t)``: the (n, 3)
-    samples at per-group times t (G,); ``counts(t_case)``: (n,) whether a sample counts."""
+def _due_samples(taken, ts, t_hi, take):
+    """Take every save time ts[j] <= t_hi[i] not yet taken by group i: ``taken`` = (next
+    index per group (G,), accumulator); ``take(acc, j, t, due)`` adds the samples at the
+    per-group indices j and times t (G,) of the groups where ``due`` (G,)."""
     last = ts.shape[0] - 1
 
     def pending(j):
         return (j <= last) & (ts[jnp.minimum(j, last)] <= t_hi)
 
     def body(c):
-        j, running = c
+        j, acc = c
         due = pending(j)
-        t = ts[jnp.minimum(j, last)]
-        use = groups.per_case(due) & counts(groups.per_case(t))
-        return j + due, fold_peaks(running, sample_at(t), use)
+        return j + due, take(acc, j, ts[jnp.minimum(j, last)], due)
 
     # one round unconditionally (a step rarely holds more than one save time; straight-line
     # code here kept XLA on one thread), further rounds while any group has one due
-    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(peaks))
+    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(taken))
+
+
+def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
+    """Fold every save time ts[j] <= t_hi[i] not yet taken by group i into the running peaks
+    (``peaks`` = (next index per group (G,), maxima (n, 3))); ``sample_at(t)``: the (n, 3)
+    samples at per-group times t (G,); ``counts(t_case)``: (n,) whether a sample counts."""
+
+    def take(running, j, t, due):
+        use = groups.per_case(due) & counts(groups.per_case(t))
+        return fold_peaks(running, sample_at(t), use)
+
+    return _due_samples(peaks, ts, t_hi, take)
 
 
 def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetrics:
@@ -535,27 +545,18 @@ def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
     ``state_at(t)``: the state at per-group times t (G,), leaves with the case axis last.
     The peaks are computed from the stored states after the loop (`_stored_peaks`): one
     sample per save time instead of one per step."""
-    last = ts.shape[0] - 1
-    n = groups.count * groups.size
-    cases = jnp.arange(n)
+    cases = jnp.arange(groups.count * groups.size)
+    dropped = ts.shape[0]  # an out-of-range row: the update is dropped
 
-    def pending(j):
-        return (j <= last) & (ts[jnp.minimum(j, last)] <= t_hi)
-
-    def body(c):
-        j, states = c
-        due = pending(j)
-        t = ts[jnp.minimum(j, last)]
-        row = jnp.where(groups.per_case(due), groups.per_case(j), last + 1)  # else dropped
-        new = state_at(t)
-        states = jax.tree.map(
-            lambda s, x: s.at[row, cases].set(jnp.moveaxis(x, -1, 0), mode="drop"), states, new
+    def take(states, j, t, due):
+        row = jnp.where(groups.per_case(due), groups.per_case(j), dropped)
+        return jax.tree.map(
+            lambda s, x: s.at[row, cases].set(jnp.moveaxis(x, -1, 0), mode="drop"),
+            states,
+            state_at(t),
         )
-        return j + due, states
 
-    # one round unconditionally (a step rarely holds more than one save time), further
-    # rounds while any group has one due
-    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(stored))
+    return _due_samples(stored, ts, t_hi, take)
 
 
 def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
