@@ -42,7 +42,11 @@ def register(sub) -> None:
         help="TOML or JSON file overriding the default distribution",
     )
     p.add_argument(
-        "--chunk-size", type=int, default=256, help="cases per compiled chunk and per chunk file"
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="cases per compiled chunk and per chunk file (default: 256 on CPU devices, 16384 "
+        "on a GPU)",
     )
     p.add_argument(
         "--strategy",
@@ -132,6 +136,7 @@ def run(args) -> int:
         SolverSettings,
         StudyConfig,
         check_results_fit,
+        default_chunk_size,
         default_distribution,
         load_distribution,
         resolve_strategy,
@@ -140,7 +145,7 @@ def run(args) -> int:
 
     if args.cases < 1:
         raise UsageError(f"--cases must be >= 1, got {args.cases}.")
-    if args.chunk_size < 1:
+    if args.chunk_size is not None and args.chunk_size < 1:
         raise UsageError(f"--chunk-size must be >= 1, got {args.chunk_size}.")
     if args.seed < 0:
         raise UsageError(f"--seed must be >= 0, got {args.seed}.")
@@ -185,10 +190,11 @@ def run(args) -> int:
         jax.distributed.initialize()
         host_index, host_count = jax.process_index(), jax.process_count()
     check_results_fit(args.cases, len(controllers), distribution, host_count)
+    chunk_size = default_chunk_size() if args.chunk_size is None else args.chunk_size
     hosts = f", host {host_index} of {host_count}" if host_count > 1 else ""
     print(
         f"afbl montecarlo: {args.cases} cases x {', '.join(controllers)} (seed {args.seed}, "
-        f"chunk {args.chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
+        f"chunk {chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
         f"{settings.atol:g}, {len(jax.local_devices())} device(s){hosts}) -> {args.out}",
         flush=True,
     )
@@ -199,7 +205,7 @@ def run(args) -> int:
             n_cases=args.cases,
             seed=args.seed,
             distribution=distribution,
-            chunk_size=args.chunk_size,
+            chunk_size=chunk_size,
             strategy=strategy,
             settings=settings,
             report=not args.no_report,
