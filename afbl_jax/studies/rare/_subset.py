@@ -43,7 +43,7 @@ import math
 import numpy as np
 from scipy import stats
 
-from ._estimators import Estimate, Margin, _evaluate, wilson
+from ._estimators import Estimate, Margin, _evaluate
 
 TARGET_ACCEPTANCE = 0.44
 Z95 = float(stats.norm.ppf(0.975))
@@ -135,13 +135,17 @@ def subset_simulation(
     calls of g on points (level 0: N, each further level: the chains' candidates); failures and
     n_final: the last level's failing and total samples; stages: per level its threshold (the
     margin level it conditions the next on; 0 at the last), samples, failing samples,
-    acceptance rate, gamma, conditional probability and delta (its cv); z, margin: the last
+    acceptance rate of the chains that made it (None at level 0), gamma, conditional
+    probability and delta (its cv); z, margin: the last
     level's samples; log_weight: log of the product of the earlier levels' conditional
     probabilities, the same for every sample (each last-level sample represents that much
     nominal probability mass times the conditional density: ``mean(exp(log_weight) * (margin
-    > 0))`` is the estimate). If no level reaches 0 within ``max_levels`` the estimate is the
-    last level's failing fraction times the product (0 if none failed: cv inf, interval [0,
-    product x the Wilson upper bound of 0 in N]) and ``stages[-1]["threshold"] < 0``.
+    > 0))`` is the estimate). If no level reaches 0 within ``max_levels`` (or ties at the top
+    of the margins stop the levels), ``stages[-1]["threshold"] < 0``: the estimate is the last
+    level's failing fraction times the product (0 if none failed: cv inf), and the last stage
+    records ``p_above_threshold``, the estimate of P(g > threshold) >= P(failure), with the
+    upper end of its log-normal 95 % interval, ``p_above_threshold_high``, which is the
+    interval's upper end where no sample failed.
     """
     if not 0 < p0 <= 0.5:
         raise ValueError(f"p0 must lie in (0, 0.5], got {p0}.")
@@ -156,36 +160,42 @@ def subset_simulation(
     simulations = n_per_level
     stages: list[dict] = []
     log_before = 0.0  # log of the product of the earlier levels' conditional probabilities
-    gamma, rate, lam = 0.0, float("nan"), 0.6
+    gamma, rate, lam = 0.0, None, 0.6
     deltas: list[float] = []
     for level in range(max_levels + 1):
         n = margin.shape[0]
-        order = np.argsort(-margin, kind="stable")
-        b = 0.5 * (margin[order[nc - 1]] + margin[order[nc]])
-        b = min(b, 0.0)
+        b = _threshold(margin, nc)
         above = margin > b
+        failing = margin > 0
         # stop at 0, after max_levels, or where ties at the top leave no sample above b
         last = b == 0.0 or level == max_levels or not above.any()
-        p_level = float(np.mean(above))
-        delta = math.sqrt((1 - p_level) / (n * p_level) * (1 + gamma)) if p_level > 0 else math.inf
-        deltas.append(delta)
-        stages.append(
-            {
-                "level": level,
-                "threshold": float(b),
-                "samples": int(n),
-                "above_threshold": int(above.sum()),
-                "failures": int(np.sum(margin > 0)),
-                "acceptance_rate": rate,
-                "gamma": gamma,
-                "conditional_probability": p_level,
-                "delta": delta,
-            }
-        )
+        # the factor of the product: P(g > b | previous level), at the last level P(g > 0 | .)
+        p_level = float(np.mean(failing if last else above))
+        stage = {
+            "level": level,
+            "threshold": float(b),
+            "samples": int(n),
+            "above_threshold": int(above.sum()),
+            "failures": int(failing.sum()),
+            "acceptance_rate": rate,
+            "gamma": gamma,
+            "conditional_probability": p_level,
+            "delta": _delta(p_level, n, gamma),
+        }
+        if last and b < 0.0:
+            # not converged: P(g > b) >= P(failure), estimated with its log-normal upper end
+            p_above = math.exp(log_before) * float(np.mean(above))
+            cv_above = math.sqrt(
+                sum(st["delta"] ** 2 for st in stages) + _delta(np.mean(above), n, gamma) ** 2
+            )
+            stage["p_above_threshold"] = p_above
+            stage["p_above_threshold_high"] = lognormal_interval(p_above, cv_above)[1]
+        stages.append(stage)
         if echo is not None:
             echo(
                 f"subset level {level}: {n} samples, threshold {b:+.4g}, conditional "
-                f"probability {p_level:.4g}, acceptance {rate:.3f}, gamma {gamma:.2f}"
+                f"probability {p_level:.4g}, failures {int(failing.sum())}"
+                + ("" if rate is None else f", acceptance {rate:.3f}, gamma {gamma:.2f}")
             )
         if last:
             break
@@ -203,25 +213,24 @@ def subset_simulation(
         # order by (step, chain): states (ns, Nc, D) -> (ns * Nc, D)
         z = states.reshape(-1, dimension)
         margin = margins.reshape(-1)
-        rate = float(np.mean(rates)) if rates.size else float("nan")
-        # gamma of the next level's indicator along each chain (chains x states)
-        nxt = np.argsort(-margin, kind="stable")
-        b_next = min(0.0, 0.5 * (margin[nxt[nc - 1]] + margin[nxt[nc]]))
+        rate = float(np.mean(rates)) if rates.size else None
+        # gamma of the indicator the next level estimates, along each chain (chains x states)
+        b_next = 0.0 if level + 1 == max_levels else _threshold(margin, nc)
         gamma = correlation_factor((margins > b_next).T)
     p = math.exp(log_before) * stages[-1]["conditional_probability"]
-    failures = int(np.sum(margin > 0))
+    deltas = [st["delta"] for st in stages]
     cv = math.sqrt(sum(d**2 for d in deltas)) if p > 0 else math.inf
     if p > 0:
         ci = lognormal_interval(p, cv)
     else:
-        ci = (0.0, math.exp(log_before) * wilson(0, margin.shape[0])[1])
+        ci = (0.0, stages[-1].get("p_above_threshold_high", math.exp(log_before)))
     return Estimate(
         "subset",
         p,
         cv,
         ci,
         simulations,
-        failures,
+        int(np.sum(margin > 0)),
         int(margin.shape[0]),
         stages,
         z,
@@ -229,3 +238,15 @@ def subset_simulation(
         np.full(margin.shape[0], log_before),
         cv_correlated=float(sum(deltas)) if p > 0 else math.inf,
     )
+
+
+def _threshold(margin, nc: int) -> float:
+    """The level between the nc-th and (nc + 1)-th largest margins, capped at 0."""
+    top = np.sort(margin)[::-1][: nc + 1]
+    return min(0.0, 0.5 * float(top[nc - 1] + top[nc]))
+
+
+def _delta(p: float, n: int, gamma: float) -> float:
+    """Au & Beck's cv of a level's conditional probability p from n samples with correlation
+    factor gamma (inf for p = 0)."""
+    return math.sqrt((1 - p) / (n * p) * (1 + gamma)) if p > 0 else math.inf
