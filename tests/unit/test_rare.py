@@ -294,8 +294,7 @@ def test_subset_simulation_on_a_series_system_of_two_modes():
     assert np.mean([r.ci95[0] <= p <= r.ci95[1] for r in runs]) >= 0.75
     # both modes among the last level's failing samples in most runs
     both = [
-        np.any((r.z[:, 0] + r.z[:, 2]) / np.sqrt(2) > 3) and np.any(r.z[:, 1] < -3.2)
-        for r in runs
+        np.any((r.z[:, 0] + r.z[:, 2]) / np.sqrt(2) > 3) and np.any(r.z[:, 1] < -3.2) for r in runs
     ]
     assert np.mean(both) >= 0.75
 
