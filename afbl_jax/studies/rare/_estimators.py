@@ -131,7 +131,7 @@ def _weighted(indicator, log_w, method, simulations, z, margin, stages) -> Estim
 def crude(g: Margin, dimension: int, n: int, rng: np.random.Generator, batch=None) -> Estimate:
     """Plain Monte-Carlo: n standard-normal samples; Wilson interval; cv sqrt((1-p)/(n p))."""
     z = rng.standard_normal((n, dimension))
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     k = int(np.sum(margin > 0))
     p = k / n
     cv = math.sqrt((1 - p) / (n * p)) if k else float("inf")
@@ -153,7 +153,7 @@ def importance_sampling(
     mean = np.asarray(mean, dtype=np.float64)
     sigma = np.broadcast_to(np.asarray(scale, dtype=np.float64), mean.shape)
     z = mean + sigma * rng.standard_normal((n, mean.shape[0]))
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     log_w = _log_ratio(z, mean, sigma)
     return _weighted(
         margin > 0, log_w, method, simulations_before + n, z, margin, list(stages or [])
@@ -188,7 +188,7 @@ def cross_entropy(
     used, stages = 0, []
     for _ in range(max_stages):
         z = mu + sigma * rng.standard_normal((n_per_stage, dimension))
-        margin = _evaluate(g, z, batch)
+        margin = evaluate_margin(g, z, batch)
         used += n_per_stage
         level = min(0.0, float(np.quantile(margin, 1 - rho)))
         elite = margin >= level
@@ -402,7 +402,7 @@ def cross_entropy_mixture(
     pool_z, pool_m, proposals = [], [], []
     for _ in range(max_stages):
         z = proposal.sample(n_per_stage, rng)
-        margin = _evaluate(g, z, batch)
+        margin = evaluate_margin(g, z, batch)
         used += n_per_stage
         level = min(0.0, float(np.quantile(margin, 1 - rho)))
         pool_z.append(z)
@@ -448,14 +448,15 @@ def cross_entropy_mixture(
     if temper:
         proposal = proposal.tempered()
     z = proposal.sample(n_final, rng)
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     log_w = proposal.log_ratio(z)
     est = _weighted(margin > 0, log_w, "ce-mixture", used + n_final, z, margin, stages)
     est.proposal = proposal.to_dict()
     return est
 
 
-def _evaluate(g: Margin, z, batch) -> np.ndarray:
+def evaluate_margin(g: Margin, z, batch) -> np.ndarray:
+    """g(z) in float64, in calls of at most ``batch`` points (None: one call)."""
     if batch is None or batch >= z.shape[0]:
         return np.asarray(g(z), dtype=np.float64)
     return np.concatenate(

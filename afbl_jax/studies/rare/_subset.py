@@ -43,7 +43,7 @@ import math
 import numpy as np
 from scipy import stats
 
-from ._estimators import Estimate, Margin, _evaluate
+from ._estimators import Estimate, Margin, evaluate_margin
 
 TARGET_ACCEPTANCE = 0.44
 Z95 = float(stats.norm.ppf(0.975))
@@ -97,7 +97,7 @@ def conditional_chains(
         sigma = np.minimum(1.0, lam * s)
         rho = np.sqrt(1.0 - sigma**2)
         cand = rho * z + sigma * rng.standard_normal((nc, dim))
-        mc = _evaluate(g, cand, batch)
+        mc = evaluate_margin(g, cand, batch)
         accept = mc > threshold
         z = np.where(accept[:, None], cand, z)
         m = np.where(accept, mc, m)
@@ -156,7 +156,7 @@ def subset_simulation(
         raise ValueError(f"max_levels must be >= 0, got {max_levels}.")
     ns = int(math.ceil(n_per_level / nc))
     z = rng.standard_normal((n_per_level, dimension))
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     simulations = n_per_level
     stages: list[dict] = []
     log_before = 0.0  # log of the product of the earlier levels' conditional probabilities
