@@ -1,6 +1,6 @@
 """Rare failures: worst cases by gradient vs CMA-ES (same as `afbl falsify`), or a rare-event
-failure probability (`afbl montecarlo --estimator ce-mixture|ce|is`) with ``estimate`` as first
-argument.
+failure probability (`afbl montecarlo --estimator ce-mixture|ce|is|subset`) with ``estimate``
+as first argument.
 
     python studies/rare_failures.py --controllers afbl --seeds 10 --starts 4 --budget 32 \\
         --distribution studies/distributions/light_turbulence_4s.toml --out results/falsify

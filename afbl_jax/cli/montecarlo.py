@@ -42,7 +42,11 @@ def register(sub) -> None:
         help="TOML or JSON file overriding the default distribution",
     )
     p.add_argument(
-        "--chunk-size", type=int, default=256, help="cases per compiled chunk and per chunk file"
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="cases per compiled chunk and per chunk file (default: 256 on CPU devices, 16384 "
+        "on a GPU)",
     )
     p.add_argument(
         "--strategy",
@@ -57,11 +61,12 @@ def register(sub) -> None:
     rare = p.add_argument_group(
         "rare-event estimators",
         "--estimator is|ce|ce-mixture estimates the failure probability by importance "
-        "sampling in the standard-normal space of the case variates (float64 ensembles at "
-        "--rtol/--atol, default 1e-6 / 1e-8; with --strategy ensemble_f32 the crude study's "
-        "float32 path, default 3e-6 / 3e-7) and writes OUT/rare_event.json, results.parquet "
-        "(the estimating samples with their log weights) and rare_report.md; --cases is then "
-        "the size of the final importance-sampling stage",
+        "sampling, --estimator subset by subset simulation, in the standard-normal space of "
+        "the case variates (float64 ensembles at --rtol/--atol, default 1e-6 / 1e-8; with "
+        "--strategy ensemble_f32 the crude study's float32 path, default 3e-6 / 3e-7) and "
+        "writes OUT/rare_event.json, results.parquet (the estimating samples with their log "
+        "weights; subset: the last level's samples) and rare_report.md; --cases is then the "
+        "size of the final importance-sampling stage (unused by subset)",
     )
     rare.add_argument(
         "--estimator",
@@ -69,13 +74,21 @@ def register(sub) -> None:
         help="crude (the Monte-Carlo study above), is (importance sampling centred on the most "
         "likely failure a gradient search finds), ce (cross-entropy method) or ce-mixture "
         "(cross-entropy method on the few variates its stages find to drive failure, with a "
-        "defensive normal mixture proposal; the one that works on several failure modes)",
+        "defensive normal mixture proposal; the one that works on several failure modes) or "
+        "subset (subset simulation: levels of conditional probability --p0, every variate "
+        "moved by batched adaptive MCMC; for the rarest failures)",
     )
     rare.add_argument(
         "--stage-cases",
         type=int,
         default=512,
-        help="ce, ce-mixture: samples per cross-entropy stage",
+        help="ce, ce-mixture: samples per cross-entropy stage; subset: samples per level",
+    )
+    rare.add_argument(
+        "--p0",
+        type=float,
+        default=0.1,
+        help="subset: conditional probability of each intermediate level, in (0, 0.5]",
     )
     rare.add_argument(
         "--search-budget",
@@ -132,6 +145,7 @@ def run(args) -> int:
         SolverSettings,
         StudyConfig,
         check_results_fit,
+        default_chunk_size,
         default_distribution,
         load_distribution,
         resolve_strategy,
@@ -140,7 +154,7 @@ def run(args) -> int:
 
     if args.cases < 1:
         raise UsageError(f"--cases must be >= 1, got {args.cases}.")
-    if args.chunk_size < 1:
+    if args.chunk_size is not None and args.chunk_size < 1:
         raise UsageError(f"--chunk-size must be >= 1, got {args.chunk_size}.")
     if args.seed < 0:
         raise UsageError(f"--seed must be >= 0, got {args.seed}.")
@@ -160,16 +174,16 @@ def run(args) -> int:
             f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
         )
     check_tolerances(args)
-    if args.estimator not in ("crude", "is", "ce", "ce-mixture"):
+    if args.estimator not in ("crude", "is", "ce", "ce-mixture", "subset"):
         raise UsageError(
-            f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce, ce-mixture."
+            f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce, ce-mixture, subset."
         )
     if args.estimator != "crude":
         return run_rare(args)
     if args.attitude_limit is not None or args.altitude_limit is not None:
         raise UsageError(
-            "--attitude-limit/--altitude-limit apply to --estimator is|ce|ce-mixture; the crude "
-            "study counts status failures (the divergence limits)."
+            "--attitude-limit/--altitude-limit apply to --estimator is|ce|ce-mixture|subset; "
+            "the crude study counts status failures (the divergence limits)."
         )
     check_out(args.out)
     controllers = controllers_from_args(args)
@@ -185,10 +199,11 @@ def run(args) -> int:
         jax.distributed.initialize()
         host_index, host_count = jax.process_index(), jax.process_count()
     check_results_fit(args.cases, len(controllers), distribution, host_count)
+    chunk_size = default_chunk_size() if args.chunk_size is None else args.chunk_size
     hosts = f", host {host_index} of {host_count}" if host_count > 1 else ""
     print(
         f"afbl montecarlo: {args.cases} cases x {', '.join(controllers)} (seed {args.seed}, "
-        f"chunk {args.chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
+        f"chunk {chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
         f"{settings.atol:g}, {len(jax.local_devices())} device(s){hosts}) -> {args.out}",
         flush=True,
     )
@@ -199,7 +214,7 @@ def run(args) -> int:
             n_cases=args.cases,
             seed=args.seed,
             distribution=distribution,
-            chunk_size=args.chunk_size,
+            chunk_size=chunk_size,
             strategy=strategy,
             settings=settings,
             report=not args.no_report,
@@ -216,11 +231,18 @@ def run_rare(args) -> int:
 
     if args.stage_cases < 2:
         raise UsageError(f"--stage-cases must be >= 2, got {args.stage_cases}.")
+    if not 0 < args.p0 <= 0.5:
+        raise UsageError(f"--p0 must lie in (0, 0.5], got {args.p0}.")
+    if args.estimator == "subset" and round(args.stage_cases * args.p0) < 2:
+        raise UsageError(
+            f"--estimator subset needs --stage-cases x --p0 >= 2 chains, got "
+            f"{args.stage_cases} x {args.p0}."
+        )
     if args.search_budget < 0:
         raise UsageError(f"--search-budget must be >= 0, got {args.search_budget}.")
     if args.host_index is not None or args.distributed:
         raise UsageError(
-            "--estimator is|ce|ce-mixture runs on one host (no --host-index/--distributed)."
+            "--estimator is|ce|ce-mixture|subset runs on one host (no --host-index/--distributed)."
         )
     if args.strategy not in ("auto", "ensemble", "ensemble_f32"):
         raise UsageError(
@@ -232,9 +254,14 @@ def run_rare(args) -> int:
     check_out(args.out)
     controllers = controllers_from_args(args)
     distribution = distribution_from_args(args)
+    size = (
+        f"{args.stage_cases} samples per level, p0 {args.p0:g}"
+        if args.estimator == "subset"
+        else f"{args.cases} final samples"
+    )
     print(
         f"afbl montecarlo: --estimator {args.estimator}, {', '.join(controllers)} (seed "
-        f"{args.seed}, {args.cases} final samples) -> {args.out}",
+        f"{args.seed}, {size}) -> {args.out}",
         flush=True,
     )
     run_rare_event(
@@ -246,6 +273,7 @@ def run_rare(args) -> int:
             seed=args.seed,
             n_cases=args.cases,
             n_per_stage=args.stage_cases,
+            p0=args.p0,
             search_budget=args.search_budget,
             attitude_limit=args.attitude_limit,
             altitude_limit=args.altitude_limit,

@@ -11,10 +11,12 @@ consecutive cases (each group its own steps) with one of two integrators (`INTEG
   (`ClosedLoop.diverged_at`); a case past the limits (or non-finite) is frozen from then on
   (zero derivatives: its cost integrals stop, it cannot stall its group's step size), its
   status is ``diverged`` and it ends at the end of that step, as `simulate`'s divergence
-  event stops a single run. Peaks: the save times inside each accepted step, from diffrax's
-  dense interpolation (digital control: the states at the sample instants, linearly
-  interpolated, and the held command, as `simulate`), folded into running maxima
-  (`afbl_jax.metrics.fold_peaks`). Digital control: a group's steps land on its sample
+  event stops a single run. Peaks: the states at the save times inside each accepted step,
+  from diffrax's dense interpolation, are stored and the peak samples (reference error and
+  the controller's command) computed from them after the loop, once per save time rather than
+  once per step (digital control: the states at the sample instants, linearly interpolated,
+  and the held command, as `simulate`, folded into running maxima,
+  `afbl_jax.metrics.fold_peaks`). Digital control: a group's steps land on its sample
   instants (the held command jumps there); a step ending on one runs
   `afbl_jax.sim.sample_instant` for the group's cases. Not reverse-mode differentiable.
 - ``"diffeqsolve"``: `diffrax.diffeqsolve` per group (groups vectorised with `jax.vmap`),
@@ -487,35 +489,46 @@ def _freeze(cases: _Cases, t, y, diverged, groups: Groups) -> _Cases:
     return _Cases(cases.frozen | new, t_frozen, cases.peaks)
 
 
-def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
-    """Fold every save time ts[j] <= t_hi[i] not yet taken by group i into the running peaks
-    (``peaks`` = (next index per group (G,), maxima (n, 3))); ``sample_at(t)``: the (n, 3)
-    samples at per-group times t (G,); ``counts(t_case)``: (n,) whether a sample counts."""
+def _due_samples(taken, ts, t_hi, take):
+    """Take every save time ts[j] <= t_hi[i] not yet taken by group i: ``taken`` = (next
+    index per group (G,), accumulator); ``take(acc, j, t, due)`` adds the samples at the
+    per-group indices j and times t (G,) of the groups where ``due`` (G,)."""
     last = ts.shape[0] - 1
 
     def pending(j):
         return (j <= last) & (ts[jnp.minimum(j, last)] <= t_hi)
 
     def body(c):
-        j, running = c
+        j, acc = c
         due = pending(j)
-        t = ts[jnp.minimum(j, last)]
-        use = groups.per_case(due) & counts(groups.per_case(t))
-        return j + due, fold_peaks(running, sample_at(t), use)
+        return j + due, take(acc, j, ts[jnp.minimum(j, last)], due)
 
     # one round unconditionally (a step rarely holds more than one save time; straight-line
     # code here kept XLA on one thread), further rounds while any group has one due
-    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(peaks))
+    return jax.lax.while_loop(lambda c: jnp.any(pending(c[0])), body, body(taken))
 
 
-def _lean_result(out, cases: _Cases, groups: Groups, dtype, n_save) -> BatchMetrics:
+def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
+    """Fold every save time ts[j] <= t_hi[i] not yet taken by group i into the running peaks
+    (``peaks`` = (next index per group (G,), maxima (n, 3))); ``sample_at(t)``: the (n, 3)
+    samples at per-group times t (G,); ``counts(t_case)``: (n,) whether a sample counts."""
+
+    def take(running, j, t, due):
+        use = groups.per_case(due) & counts(groups.per_case(t))
+        return fold_peaks(running, sample_at(t), use)
+
+    return _due_samples(peaks, ts, t_hi, take)
+
+
+def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetrics:
+    """``peaks``: (n, 3) running maxima (`fold_peaks`), or None without peaks."""
     status = jnp.where(
         cases.frozen,
         STATUS_DIVERGED,
         groups.per_case(status_from(out.result, jnp.zeros_like(out.t, bool))),
     ).astype(jnp.int32)
     n = groups.count * groups.size
-    peaks = finish_peaks(cases.peaks[1]) if n_save else jnp.full((n, 3), jnp.nan, dtype)
+    peaks = jnp.full((n, 3), jnp.nan, dtype) if peaks is None else finish_peaks(peaks)
     return _metrics(
         _to_first(out.y),
         cases.t_final(groups.per_case(out.t)),
@@ -526,10 +539,50 @@ def _lean_result(out, cases: _Cases, groups: Groups, dtype, n_save) -> BatchMetr
     )
 
 
-def _lean_start(part, fixed, n, dtype, n_save, G):
+def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
+    """Store the state at every save time ts[j] <= t_hi[i] not yet taken by group i
+    (``stored`` = (next index per group (G,), states: leaves (n_save, n, ...)));
+    ``state_at(t)``: the state at per-group times t (G,), leaves with the case axis last.
+    The peaks are computed from the stored states after the loop (`_stored_peaks`): one
+    sample per save time instead of one per step."""
+    cases = jnp.arange(groups.count * groups.size)
+    dropped = ts.shape[0]  # an out-of-range row: the update is dropped
+
+    def take(states, j, t, due):
+        row = jnp.where(groups.per_case(due), groups.per_case(j), dropped)
+        return jax.tree.map(
+            lambda s, x: s.at[row, cases].set(jnp.moveaxis(x, -1, 0), mode="drop"),
+            states,
+            state_at(t),
+        )
+
+    return _due_samples(stored, ts, t_hi, take)
+
+
+def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
+    """Running peaks (n, 3) (`fold_peaks`) from the states `_store_samples` stored: the
+    samples taken (j < the group's next index) that count (at or before the case's end)."""
+    j_next, states = stored
+    samples = jax.vmap(
+        lambda t, y: sample((jnp.full((groups.count,), t),), _to_last(y)), in_axes=(0, 0)
+    )(ts, states)  # (n_save, n, 3)
+    taken = jnp.arange(ts.shape[0])[:, None] < groups.per_case(j_next)[None, :]
+    counts = taken & cases.counts(ts[:, None])
+    return jnp.max(fold_peaks(no_peaks(counts.shape, samples.dtype), samples, counts), axis=0)
+
+
+def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
+    """Initial state and bookkeeping; ``store``: the peaks are kept as stored states
+    (`_store_samples`), else as running maxima (`fold_peaks`)."""
     state0 = _to_last(_per_case(lambda lp, inp: lp.initial_state(inp, dtype), part, fixed, n))
     frozen = jnp.zeros((n,), bool)
-    peaks = (jnp.zeros((G,), jnp.int32), no_peaks((n,), dtype)) if n_save else None
+    if not n_save:
+        peaks = None
+    elif store:
+        states = jax.tree.map(lambda x: jnp.zeros((n_save, n, *x.shape[:-1]), x.dtype), state0)
+        peaks = (jnp.zeros((G,), jnp.int32), states)
+    else:
+        peaks = (jnp.zeros((G,), jnp.int32), no_peaks((n,), dtype))
     return state0, _Cases(frozen, jnp.zeros((n,), dtype), peaks)
 
 
@@ -540,7 +593,7 @@ def _lean_continuous(
     diverged case is frozen from then on) and the peak samples at the save times inside the
     step, from diffrax's dense interpolation."""
     n = groups.count * groups.size
-    state0, cases0 = _lean_start(part, fixed, n, dtype, n_save, groups.count)
+    state0, cases0 = _lean_start(part, fixed, n, dtype, n_save, groups.count, store=True)
     ts = _save_times(t0, t1, n_save, dtype) if n_save else None
     sample = _at_group_values(_peak_sample, part_g, fixed, groups)
     diverged = _at_group_values(
@@ -553,12 +606,11 @@ def _lean_continuous(
 
     def after_step(cases, step, args, keep, at_boundary):
         if n_save:
-            peaks = _fold_samples(
+            peaks = _store_samples(
                 cases.peaks,
                 ts,
                 jnp.where(keep, step.t1, -jnp.inf),
-                cases.counts,
-                lambda t: sample((t,), step.evaluate(groups.per_case(t))),
+                lambda t: step.evaluate(groups.per_case(t)),
                 groups,
             )
             cases = _Cases(cases.frozen, cases.t_frozen, peaks)
@@ -580,7 +632,9 @@ def _lean_continuous(
         after_step=after_step,
         on_state=on_state,
     )
-    return _lean_result(out, out.extra, groups, dtype, n_save)
+    cases = out.extra
+    peaks = _stored_peaks(cases.peaks, ts, cases, sample, groups) if n_save else None
+    return _lean_result(out, cases, groups, dtype, peaks)
 
 
 def _held_sample(t, k, e_prev, e_end, h, t0, max_samples, loop, inputs, qa, qb, ua, ub):
@@ -706,4 +760,5 @@ def _lean_digital(
         on_state=on_state,
         boundary=lambda extra: interval_end(extra[1]),
     )
-    return _lean_result(out, out.extra[0], groups, dtype, n_save)
+    cases = out.extra[0]
+    return _lean_result(out, cases, groups, dtype, cases.peaks[1] if n_save else None)

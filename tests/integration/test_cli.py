@@ -198,6 +198,13 @@ def test_bench_cli_smoke(tmp_path, capsys):
             ["montecarlo", "--estimator", "ce-mixture", "--strategy", "vmap"],
             "--strategy must be auto or ensemble",
         ),
+        (["montecarlo", "--estimator", "subset", "--p0", "0.7"], "--p0 must lie in (0, 0.5]"),
+        (["montecarlo", "--estimator", "subset", "--p0", "0"], "--p0 must lie in (0, 0.5]"),
+        (["montecarlo", "--estimator", "subset", "--p0", "nan"], "--p0 must lie in (0, 0.5]"),
+        (
+            ["montecarlo", "--estimator", "subset", "--stage-cases", "10", "--p0", "0.1"],
+            "--estimator subset needs --stage-cases x --p0 >= 2 chains",
+        ),
         (["falsify", "--budget", "4", "--starts", "8"], "--budget (4) must be >= --starts (8)"),
         (["falsify", "--sensitivity-samples", "48"], "must be 0 or a power of 2, got 48"),
         (["falsify", "--design-budget", "-1"], "--design-budget must be >= 0, got -1"),

@@ -5,6 +5,7 @@ stderr with exit status 2 and no traceback."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -317,3 +318,40 @@ def test_rare_failures_script(tmp_path):
     assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
     assert est["stages"][0]["selected_names"] and est["proposal"]["alpha"] == 0.1
     assert est["total_simulations"] == 16 * (len(est["stages"]) + 1)
+    r = _run(
+        "rare_failures.py",
+        "estimate",
+        "--estimator",
+        "subset",
+        "--strategy",
+        "ensemble_f32",
+        "--controllers",
+        "afbl",
+        "--stage-cases",
+        "20",
+        "--p0",
+        "0.1",
+        "--attitude-limit",
+        "1.0",
+        "--distribution",
+        str(dist),
+        "--out",
+        str(tmp_path / "s"),
+        "--no-progress",
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "s" / "rare_event.json").read_text())
+    assert doc["config"]["p0"] == 0.1 and doc["config"]["n_per_stage"] == 20
+    est = doc["rare_event"]["controllers"]["afbl"]
+    assert est["method"] == "subset" and 0 <= est["probability"] <= est["ci95"][1]
+    levels = est["stages"]
+    assert est["total_simulations"] == 20 + 18 * (len(levels) - 1)  # 2 chains of 10 states
+    assert est["probability"] == pytest.approx(
+        math.prod(s["conditional_probability"] for s in levels)
+    )
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(tmp_path / "s" / "results.parquet").to_pydict()
+    assert len(t["failure_margin"]) == 20 and len(set(t["log_weight"])) == 1
+    assert sum(m > 0 for m in t["failure_margin"]) == levels[-1]["failures"]
+    assert "subset simulation levels" in (tmp_path / "s" / "rare_report.md").read_text()

@@ -593,3 +593,20 @@ def test_configure_cpu_devices(monkeypatch):
         configure_cpu_devices(2)  # this test process has computed already
     with pytest.raises(ValueError, match="integer >= 1"):
         configure_cpu_devices(0)
+
+
+def test_chunking_follows_the_platform():
+    """CPU devices: the cache-sized inner chunk and 256-case runner chunks; an accelerator
+    solves all its cases at once, in large runner chunks."""
+
+    class Device:
+        def __init__(self, platform):
+            self.platform = platform
+
+    cpu, gpu = (Device("cpu"),), (Device("gpu"),)
+    assert mc.device_chunk(mc.INNER_CHUNK, cpu) == mc.INNER_CHUNK
+    assert mc.device_chunk(mc.INNER_CHUNK, gpu) is None
+    assert mc.default_chunk_size(cpu) == mc.CPU_CHUNK_SIZE == 256
+    assert mc.default_chunk_size(gpu) == mc.ACCELERATOR_CHUNK_SIZE
+    here = mc.CPU_CHUNK_SIZE if jax.local_devices()[0].platform == "cpu" else None
+    assert mc.default_chunk_size() == (here or mc.ACCELERATOR_CHUNK_SIZE)

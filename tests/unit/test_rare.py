@@ -248,6 +248,123 @@ def test_crude_wilson_interval_covers():
     assert 0.88 <= cover <= 1.0
 
 
+# ---- subset simulation ---------------------------------------------------------------------------
+
+
+def test_subset_simulation_on_a_linear_limit_state_at_1e6():
+    """g = a.z - beta, |a| = 1, D = 200: p = Phi(-4.75) = 1.02e-6 exactly. Subset simulation is
+    biased by O(1 / N) (thresholds from the same samples; a few per cent at N = 1000, far below
+    the standard error of the mean of 60 runs, ~6 %): the mean of 60 runs lies within 3.5
+    standard errors of the truth."""
+    d, beta = 200, 4.75
+    g, a, p = _toy(d=d, beta=beta)
+    rng = np.random.default_rng(11)
+    runs = [rare.subset_simulation(g, d, 1000, rng) for _ in range(60)]
+    est = np.array([r.probability for r in runs])
+    assert abs(est.mean() - p) < 3.5 * est.std(ddof=1) / np.sqrt(est.size)
+    spread = est.std(ddof=1) / p
+    cvs = np.array([r.cv for r in runs])
+    # the reported cv assumes uncorrelated levels: a lower bound, of the spread's size
+    assert 0.5 < np.median(cvs) / spread <= 1.1
+    assert np.all([r.cv <= r.cv_correlated for r in runs])
+    # the log-normal 95 % intervals cover the truth in most runs (less than 95 %: cv is low)
+    cover = np.mean([r.ci95[0] <= p <= r.ci95[1] for r in runs])
+    assert cover >= 0.75
+    r = runs[0]
+    levels = len(r.stages)
+    assert 5 <= levels <= 8  # log(1e-6) / log(0.1) = 6 levels, give or take one
+    assert r.simulations == 1000 + (levels - 1) * 900  # seeds are the chains' first states
+    assert r.stages[-1]["threshold"] == 0.0
+    assert all(s["threshold"] < 0 for s in r.stages[:-1])
+    assert np.all(np.diff([s["threshold"] for s in r.stages]) > 0)
+    assert all(0.2 < s["acceptance_rate"] < 0.7 for s in r.stages[1:])  # aCS near 0.44
+    assert np.all(np.exp(r.log_weight) * (r.margin > 0)).mean() >= 0
+    np.testing.assert_allclose(np.mean(np.exp(r.log_weight) * (r.margin > 0)), r.probability)
+
+
+def test_subset_simulation_on_a_series_system_of_two_modes():
+    """Failure if (z0 + z2) / sqrt 2 > 3 or z1 < -3.2 in 30 dimensions (p = 2.04e-3 exactly):
+    the chains must keep both modes. Mean of 40 runs within 3.5 standard errors; intervals
+    cover the truth in >= 75 % of the runs."""
+    g, d, p = _two_modes()
+    rng = np.random.default_rng(12)
+    runs = [rare.subset_simulation(g, d, 1000, rng, p0=0.2) for _ in range(40)]
+    est = np.array([r.probability for r in runs])
+    assert abs(est.mean() - p) < 3.5 * est.std(ddof=1) / np.sqrt(est.size)
+    assert np.mean([r.ci95[0] <= p <= r.ci95[1] for r in runs]) >= 0.75
+    # both modes among the last level's failing samples in most runs
+    both = [
+        np.any((r.z[:, 0] + r.z[:, 2]) / np.sqrt(2) > 3) and np.any(r.z[:, 1] < -3.2) for r in runs
+    ]
+    assert np.mean(both) >= 0.75
+
+
+def test_subset_chains_keep_the_conditional_distribution():
+    """The batched aCS steps leave N(0, I) restricted to {g > b} invariant: with an always-true
+    g the chains stay standard normal; with g = z0 - 1 > 0 they stay truncated normal in z0 and
+    standard normal elsewhere (KS tests on the final states of 2000 independent chains, started
+    from exact draws), and every state satisfies g > b."""
+    from scipy import stats
+
+    from afbl_jax.studies.rare._subset import conditional_chains
+
+    rng = np.random.default_rng(5)
+    nc, d = 2000, 6
+    z0 = rng.standard_normal((nc, d))
+    states, margins, rates, _ = conditional_chains(
+        lambda z: np.zeros(len(z)), z0, np.zeros(nc), -1.0, 10, rng
+    )
+    assert np.all(rates == 1.0)
+    for j in range(d):
+        assert stats.kstest(states[-1][:, j], "norm").pvalue > 1e-3
+    np.testing.assert_allclose(states[-1].mean(0), 0, atol=0.1)
+    np.testing.assert_allclose(states[-1].var(0), 1, atol=0.12)
+    seeds = rng.standard_normal((nc, d))
+    seeds[:, 0] = stats.truncnorm.rvs(1.0, np.inf, size=nc, random_state=rng)
+    calls = []
+
+    def g(z):
+        calls.append(len(z))
+        return z[:, 0] - 1.0
+
+    states, margins, rates, _ = conditional_chains(g, seeds, g(seeds), 0.0, 12, rng)
+    assert calls[1:] == [nc] * 12  # one call of g per step for all the chains
+    assert np.all(margins > 0) and np.allclose(margins, states[..., 0] - 1.0)
+    assert 0.2 < rates[-4:].mean() < 0.7 and np.any(states[-1] != seeds)
+    assert stats.kstest(states[-1][:, 0], stats.truncnorm(1.0, np.inf).cdf).pvalue > 1e-3
+    for j in range(1, d):
+        assert stats.kstest(states[-1][:, j], "norm").pvalue > 1e-3
+
+
+def test_subset_correlation_factor_and_arguments():
+    from afbl_jax.studies.rare._subset import correlation_factor
+
+    rng = np.random.default_rng(0)
+    # chains constant along their states: rho(k) = 1, gamma = 2 sum (1 - k / Ns) = Ns - 1
+    ind = np.repeat(rng.random((200, 1)) < 0.3, 10, axis=1)
+    assert correlation_factor(ind) == pytest.approx(9.0)
+    # independent states: gamma ~ 0 (standard error ~ 2 sqrt(Ns / (Nc Ns)) ~ 0.03)
+    assert abs(correlation_factor(rng.random((2000, 10)) < 0.3)) < 0.15
+    assert correlation_factor(np.ones((5, 10), bool)) == 0.0
+    g, a, p = _toy(d=4, beta=1.0)
+    for kw, msg in (({"p0": 0.7}, "p0 must lie in"), ({"p0": 0.0}, "p0 must lie in")):
+        with pytest.raises(ValueError, match=msg):
+            rare.subset_simulation(g, 4, 100, rng, **kw)
+    with pytest.raises(ValueError, match="chains"):
+        rare.subset_simulation(g, 4, 10, rng, p0=0.1)
+    # a probability above p0: level 0 alone (crude), Wilson-sized cv
+    r = rare.subset_simulation(g, 4, 4000, rng)
+    assert len(r.stages) == 1 and r.simulations == 4000
+    assert abs(r.probability - p) < 4 * np.sqrt(p * (1 - p) / 4000)
+    # no failure within max_levels: estimate 0, an upper bound from the levels reached
+    g2, _, _ = _toy(d=4, beta=30.0)
+    r = rare.subset_simulation(g2, 4, 200, rng, max_levels=2)
+    assert r.probability == 0 and r.cv == np.inf and len(r.stages) == 3
+    last = r.stages[-1]
+    assert last["threshold"] < 0 and r.ci95[1] == last["p_above_threshold_high"]
+    assert 1e-3 * 0.5 < last["p_above_threshold"] < 1e-3 * 2  # p0^3 by construction
+
+
 # ---- falsification on a toy problem (duck-typed MarginProblem) ---------------------------------
 
 

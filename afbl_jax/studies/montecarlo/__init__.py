@@ -9,7 +9,9 @@ from ._report import rare_sections as rare_sections
 from ._report import summarize as summarize
 from ._report import wilson_interval as wilson_interval
 from ._report import write_report as write_report
+from ._runner import ACCELERATOR_CHUNK_SIZE as ACCELERATOR_CHUNK_SIZE
 from ._runner import BATCH_SETTINGS as BATCH_SETTINGS
+from ._runner import CPU_CHUNK_SIZE as CPU_CHUNK_SIZE
 from ._runner import DEFAULT_STRATEGY as DEFAULT_STRATEGY
 from ._runner import INNER_CHUNK as INNER_CHUNK
 from ._runner import RESULTS_FILE as RESULTS_FILE
@@ -19,6 +21,8 @@ from ._runner import SolverSettings as SolverSettings
 from ._runner import check_results_fit as check_results_fit
 from ._runner import chunk_ladder as chunk_ladder
 from ._runner import config_differences as config_differences
+from ._runner import default_chunk_size as default_chunk_size
+from ._runner import device_chunk as device_chunk
 from ._runner import merge_results as merge_results
 from ._runner import read_invocations as read_invocations
 from ._runner import register_strategy as register_strategy

@@ -403,6 +403,48 @@ def rare_sections(out: str | Path) -> list[str]:
             ),
             "",
         ]
+        for name, e in data["controllers"].items():
+            if e.get("method") != "subset":
+                continue
+            md += [
+                f"{name}: subset simulation levels (threshold: the failure-margin level the "
+                "next level is conditioned on, 0 at the last; gamma: the chains' correlation "
+                "factor; cv of the estimate assuming uncorrelated levels, "
+                f"{e['cv']:.3f}; fully correlated, {e.get('cv_correlated', float('nan')):.3f}).",
+                "",
+                _md_table(
+                    [
+                        "level",
+                        "threshold",
+                        "samples",
+                        "failures",
+                        "acceptance rate",
+                        "gamma",
+                        "conditional probability",
+                    ],
+                    [
+                        [
+                            str(s["level"]),
+                            f"{s['threshold']:+.4f}",
+                            str(s["samples"]),
+                            str(s["failures"]),
+                            "-" if s["acceptance_rate"] is None else f"{s['acceptance_rate']:.3f}",
+                            f"{s['gamma']:.2f}",
+                            f"{s['conditional_probability']:.4g}",
+                        ]
+                        for s in e["stages"]
+                    ],
+                ),
+                "",
+            ]
+            last = e["stages"][-1]
+            if "p_above_threshold" in last:
+                md += [
+                    f"The levels did not reach the failure margin 0: P(margin > "
+                    f"{last['threshold']:+.4f}) = {last['p_above_threshold']:.3e} (95 % upper "
+                    f"end {last['p_above_threshold_high']:.3e}) bounds P(failure) from above.",
+                    "",
+                ]
     return md
 
 

@@ -26,7 +26,8 @@ class StudyConfig:
         out: output folder (created; running the same study there again resumes).
         n_cases, seed: the cases (case i from ``fold_in(PRNGKey(seed), i)``).
         distribution: the case distribution (default `DEFAULT_DISTRIBUTION`).
-        chunk_size: cases per compiled chunk and per chunk file.
+        chunk_size: cases per compiled chunk and per chunk file (None: 256 on CPU devices,
+            16384 on an accelerator).
         strategy: how a chunk is solved (None/"auto": `DEFAULT_STRATEGY`).
         settings: solver settings (None: the strategy's defaults).
         report: write report.md/html and figures; progress: show a progress bar.
@@ -38,7 +39,7 @@ class StudyConfig:
     n_cases: int = 4096
     seed: int = 0
     distribution: Distribution = field(default_factory=default_distribution)
-    chunk_size: int = 256
+    chunk_size: int | None = None
     strategy: str | None = None
     settings: SolverSettings | None = None
     report: bool = True

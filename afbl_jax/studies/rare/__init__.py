@@ -29,3 +29,4 @@ from ._study import FalsifyConfig as FalsifyConfig
 from ._study import RareEventConfig as RareEventConfig
 from ._study import run_falsify as run_falsify
 from ._study import run_rare_event as run_rare_event
+from ._subset import subset_simulation as subset_simulation

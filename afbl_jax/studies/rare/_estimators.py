@@ -45,14 +45,18 @@ class Estimate:
     """A failure-probability estimate.
 
     Attributes:
-        method: "crude", "is", "ce" or "ce-mixture".
+        method: "crude", "is", "ce", "ce-mixture" or "subset".
         probability: the estimate; cv: its coefficient of variation (std / mean; inf without
             a failing sample); ci95: 95 % confidence interval (low, high).
         simulations: margin evaluations used (every stage); failures: failing samples in the
             estimating stage; n_final: samples of the estimating stage.
-        stages: per stage (CE): level, number of samples, proposal mean norm.
+        stages: per stage (CE): level, number of samples, proposal mean norm; per level
+            (subset, `afbl_jax.studies.rare.subset_simulation`): threshold, samples,
+            acceptance rate, correlation factor gamma, conditional probability.
         z, margin, log_weight: the estimating stage's samples, margins and log weights.
         proposal: the final importance-sampling proposal (``cross_entropy_mixture``).
+        cv_correlated: subset simulation: the cv if the levels' estimates were fully
+            correlated (sum of the levels' cvs; ``cv`` assumes them uncorrelated).
     """
 
     method: str
@@ -67,6 +71,7 @@ class Estimate:
     margin: np.ndarray | None = field(default=None, repr=False)
     log_weight: np.ndarray | None = field(default=None, repr=False)
     proposal: dict | None = None
+    cv_correlated: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -79,6 +84,7 @@ class Estimate:
             "n_final": self.n_final,
             "stages": self.stages,
             **({} if self.proposal is None else {"proposal": self.proposal}),
+            **({} if self.cv_correlated is None else {"cv_correlated": self.cv_correlated}),
         }
 
 
@@ -125,7 +131,7 @@ def _weighted(indicator, log_w, method, simulations, z, margin, stages) -> Estim
 def crude(g: Margin, dimension: int, n: int, rng: np.random.Generator, batch=None) -> Estimate:
     """Plain Monte-Carlo: n standard-normal samples; Wilson interval; cv sqrt((1-p)/(n p))."""
     z = rng.standard_normal((n, dimension))
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     k = int(np.sum(margin > 0))
     p = k / n
     cv = math.sqrt((1 - p) / (n * p)) if k else float("inf")
@@ -147,7 +153,7 @@ def importance_sampling(
     mean = np.asarray(mean, dtype=np.float64)
     sigma = np.broadcast_to(np.asarray(scale, dtype=np.float64), mean.shape)
     z = mean + sigma * rng.standard_normal((n, mean.shape[0]))
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     log_w = _log_ratio(z, mean, sigma)
     return _weighted(
         margin > 0, log_w, method, simulations_before + n, z, margin, list(stages or [])
@@ -182,7 +188,7 @@ def cross_entropy(
     used, stages = 0, []
     for _ in range(max_stages):
         z = mu + sigma * rng.standard_normal((n_per_stage, dimension))
-        margin = _evaluate(g, z, batch)
+        margin = evaluate_margin(g, z, batch)
         used += n_per_stage
         level = min(0.0, float(np.quantile(margin, 1 - rho)))
         elite = margin >= level
@@ -200,13 +206,6 @@ def cross_entropy(
     return importance_sampling(
         g, mu, n_final, rng, sigma, batch, simulations_before=used, method="ce", stages=stages
     )
-
-
-def _norm_logpdf(x, mu, sigma) -> np.ndarray:
-    """Sum over the last axis of log N(x; mu, sigma^2) (broadcasting)."""
-    return np.sum(-0.5 * ((x - mu) / sigma) ** 2 - np.log(sigma), axis=-1) - 0.5 * x.shape[
-        -1
-    ] * math.log(2 * math.pi)
 
 
 @dataclass
@@ -249,9 +248,11 @@ class MixtureProposal:
         if not self.weights.size:
             return np.zeros(z.shape[0])
         zs = z[:, self.selected]
-        log_phi = _norm_logpdf(zs, 0.0, 1.0)
+        log_phi = stats.norm.logpdf(zs).sum(axis=-1)
         log_mix = special.logsumexp(
-            np.log(self.weights) + _norm_logpdf(zs[:, None, :], self.means, self.sigmas), axis=1
+            np.log(self.weights)
+            + stats.norm.logpdf(zs[:, None, :], self.means, self.sigmas).sum(axis=-1),
+            axis=1,
         )
         log_q = np.logaddexp(math.log(self.alpha), math.log1p(-self.alpha) + log_mix - log_phi)
         return -log_q
@@ -351,7 +352,7 @@ def _em(x, w, k, rng, sigma_floor, iterations):
         mu = (rw.T @ x) / nk[:, None]
         var = np.einsum("nk,nks->ks", rw, (x[:, None, :] - mu[None]) ** 2) / nk[:, None]
         sigma = np.sqrt(np.maximum(var, sigma_floor**2))
-        log_r = np.log(pi) + _norm_logpdf(x[:, None, :], mu, sigma)
+        log_r = np.log(pi) + stats.norm.logpdf(x[:, None, :], mu, sigma).sum(axis=-1)
         log_lik = special.logsumexp(log_r, axis=1, keepdims=True)
         new = np.exp(log_r - log_lik)
         if new.shape == resp.shape and np.max(np.abs(new - resp)) < 1e-6:
@@ -401,7 +402,7 @@ def cross_entropy_mixture(
     pool_z, pool_m, proposals = [], [], []
     for _ in range(max_stages):
         z = proposal.sample(n_per_stage, rng)
-        margin = _evaluate(g, z, batch)
+        margin = evaluate_margin(g, z, batch)
         used += n_per_stage
         level = min(0.0, float(np.quantile(margin, 1 - rho)))
         pool_z.append(z)
@@ -447,14 +448,15 @@ def cross_entropy_mixture(
     if temper:
         proposal = proposal.tempered()
     z = proposal.sample(n_final, rng)
-    margin = _evaluate(g, z, batch)
+    margin = evaluate_margin(g, z, batch)
     log_w = proposal.log_ratio(z)
     est = _weighted(margin > 0, log_w, "ce-mixture", used + n_final, z, margin, stages)
     est.proposal = proposal.to_dict()
     return est
 
 
-def _evaluate(g: Margin, z, batch) -> np.ndarray:
+def evaluate_margin(g: Margin, z, batch) -> np.ndarray:
+    """g(z) in float64, in calls of at most ``batch`` points (None: one call)."""
     if batch is None or batch >= z.shape[0]:
         return np.asarray(g(z), dtype=np.float64)
     return np.concatenate(

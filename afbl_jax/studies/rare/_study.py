@@ -13,10 +13,13 @@ inputs and margin), ``sensitivity.json`` and figures.
 `run_rare_event`: a failure probability per controller by ``"crude"``, ``"is"`` (importance
 sampling centred on the most likely failure found by a short gradient search), ``"ce"``
 (cross-entropy method) or ``"ce-mixture"`` (cross-entropy method on the variates its stages
-find moved in the elite set, with a defensive normal mixture proposal) in standard-normal space
-of the variates. Writes ``rare_event.json``
-(estimate, cv, 95 % interval, simulations, stages; with `afbl_jax.io.run_metadata`) and
-``results.parquet`` (the estimating stage's samples: case inputs, margin, log weight).
+find moved in the elite set, with a defensive normal mixture proposal) or ``"subset"`` (subset
+simulation, `afbl_jax.studies.rare.subset_simulation`: every variate moved by batched MCMC) in
+standard-normal space of the variates. Writes ``rare_event.json`` (estimate, cv, 95 % interval,
+simulations, stages or levels; with `afbl_jax.io.run_metadata`) and ``results.parquet`` (the
+estimating stage's samples: case inputs, margin, log weight; subset: the last level's samples,
+whose log weight is the log of the product of the earlier levels' conditional probabilities,
+the same for all of them).
 """
 
 from __future__ import annotations
@@ -64,8 +67,9 @@ from ._falsify import (
 )
 from ._problem import MarginProblem
 from ._sensitivity import dgsm, sobol_indices_outputs
+from ._subset import subset_simulation
 
-ESTIMATORS = ("crude", "is", "ce", "ce-mixture")
+ESTIMATORS = ("crude", "is", "ce", "ce-mixture", "subset")
 
 
 @dataclass(frozen=True)
@@ -389,9 +393,13 @@ class RareEventConfig:
 
     Attributes:
         controllers, out, distribution, seed: as for the Monte-Carlo study.
-        estimator: "crude", "is", "ce" or "ce-mixture".
-        n_cases: crude: the cases; otherwise: samples of the final importance-sampling stage.
-        n_per_stage, rho, max_stages, adapt_scale: cross-entropy settings.
+        estimator: "crude", "is", "ce", "ce-mixture" or "subset".
+        n_cases: crude: the cases; is, ce, ce-mixture: samples of the final
+            importance-sampling stage; subset: unused.
+        n_per_stage, rho, max_stages, adapt_scale: cross-entropy settings; subset: n_per_stage
+            is the samples per level (n_per_stage * p0 chains) and max_stages the most levels
+            after level 0.
+        p0: subset: conditional probability of the intermediate levels, in (0, 0.5].
         components, alpha, max_selected: ce-mixture: components of the normal mixture, weight
             of the nominal (defensive) component, most variates adapted (chosen among all
             non-fixed variates by the stages' selection tests).
@@ -414,6 +422,7 @@ class RareEventConfig:
     rho: float = 0.1
     max_stages: int = 10
     adapt_scale: bool = False
+    p0: float = 0.1
     components: int = 2
     alpha: float = 0.1
     max_selected: int = 8
@@ -442,6 +451,12 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
     c = config
     if c.estimator not in ESTIMATORS:
         raise ValueError(f"unknown estimator {c.estimator!r}; allowed: {', '.join(ESTIMATORS)}.")
+    if c.estimator == "subset" and not 0 < c.p0 <= 0.5:
+        raise ValueError(f"p0 must lie in (0, 0.5], got {c.p0}.")
+    if c.estimator == "subset" and round(c.n_per_stage * c.p0) < 2:
+        raise ValueError(
+            f"subset simulation needs n_per_stage * p0 >= 2 chains, got {c.n_per_stage} * {c.p0}."
+        )
     out = Path(c.out)
     if (out / "run.json").exists():
         raise ValueError(
@@ -487,6 +502,17 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
             names = problem.names
             for stage in est.stages:
                 stage["selected_names"] = [names[j] for j in stage["selected"]]
+        elif c.estimator == "subset":
+            est = subset_simulation(
+                g,
+                dim,
+                c.n_per_stage,
+                rng,
+                p0=c.p0,
+                max_levels=c.max_stages,
+                batch=c.batch,
+                echo=echo,
+            )
         elif c.estimator == "is":
             est = importance_sampling(
                 g, np.zeros(dim) if mean is None else mean, c.n_cases, rng, batch=c.batch
