@@ -24,8 +24,9 @@
 #    gradient with respect to every uncertain input comes from the differentiable simulation;
 # 2. **worst-case search** (`afbl falsify`): projected multi-start gradient ascent on the
 #    margin against CMA-ES;
-# 3. **rare-event probabilities** (`afbl montecarlo --estimator ce-mixture|ce|is`): importance
-#    sampling with a cross-entropy-fitted proposal, and **sensitivities** (DGSM, Sobol).
+# 3. **rare-event probabilities** (`afbl montecarlo --estimator subset|ce-mixture|ce|is`): subset
+#    simulation, and importance sampling with a cross-entropy-fitted proposal; and
+#    **sensitivities** (DGSM, Sobol).
 #
 # Small sizes here (4 s runs) so the tests can execute the notebook.
 
@@ -89,6 +90,11 @@ for r in (g, c):
     print(f"{r.method:8s} best margin {r.best_margin:+.3f}, first failure after {r.first_failure}")
 
 # %% [markdown]
+# `afbl falsify --design-budget N` then searches the **most likely failure** (the design point:
+# the failing point nearest the nominal one in standard-normal space) by SLSQP on the smooth
+# margin, started from the worst failing case, and re-checks that the point found fails.
+
+# %% [markdown]
 # ## Rare-event probability on a toy problem with a known answer
 # g(z) = a . z - 4 in 8 dimensions: P = 1 - Phi(4) = 3.2e-5. Crude Monte-Carlo would need
 # ~3e6 samples for a 10 % coefficient of variation.
@@ -99,6 +105,18 @@ a_vec = np.ones(d) / np.sqrt(d)
 est = rare.cross_entropy(lambda z: z @ a_vec - 4.0, d, 500, 1000, np.random.default_rng(0))
 print(f"CE: {est.probability:.3e} (cv {est.cv:.3f}, 95 % {est.ci95}), {est.simulations} sims")
 print(f"exact: {rare.normal_tail(4.0):.3e}")
+
+# %% [markdown]
+# Subset simulation reaches the same probability through levels of the margin, each conditional
+# probability ~0.1, with Markov chains (adaptive conditional sampling) that move every variate:
+# on the closed loop that includes the turbulence phases, which no proposal over a few
+# variates reaches.
+
+# %%
+est = rare.subset_simulation(lambda z: z @ a_vec - 4.0, d, 1000, np.random.default_rng(0))
+print(f"subset: {est.probability:.3e} (cv {est.cv:.3f}, 95 % {est.ci95}), {est.simulations} sims")
+for level in est.stages:
+    print({k: round(v, 4) if isinstance(v, float) else v for k, v in level.items()})
 
 # %% [markdown]
 # ## Sensitivities
