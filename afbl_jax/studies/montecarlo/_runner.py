@@ -87,7 +87,7 @@ def device_chunk(chunk_size: int | None, devices=None) -> int | None:
     """Cases each device solves at a time for a strategy whose CPU setting is ``chunk_size``:
     that on CPU devices (a working set that stays in cache), None (all of the device's cases
     at once) on accelerators, where a step of a few hundred cases leaves the GPU idle (the
-    Monte-Carlo default in chunks of 128 ran 25-30x slower on an H100 than unchunked)."""
+    Monte-Carlo default in chunks of 128 ran 21x slower on an H100 than unchunked)."""
     return chunk_size if _platform(devices) == "cpu" else None
 
 
