@@ -90,6 +90,7 @@ def _mc_default(one_device: bool, unmodeled: bool = False, integrator: str = "le
         "always": True,
         "unmodeled": unmodeled,
         "integrator": integrator,
+        "platform_chunk": True,  # chunked on CPU devices only (`device_chunk`)
     }
 
 
@@ -340,7 +341,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     rss0 = _rss_mb()
 
     chunk_size = cfg.get("chunk_size")
-    if cfg.get("always"):  # the Monte-Carlo default: its chunking per platform
+    if cfg.get("platform_chunk"):  # the Monte-Carlo default: its chunking per platform
         from .montecarlo import device_chunk
 
         chunk_size = device_chunk(chunk_size, devices)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import optax
-from scipy import optimize
+from scipy import optimize, stats
 
 from ._estimators import to_normal, to_unit
 from ._problem import MarginProblem
@@ -224,7 +224,7 @@ def design_point(
     for _ in range(iterations):
         u = to_unit(z)
         value, grad_u, exact = problem.value_and_grad(u[None])
-        grad = np.where(mask, grad_u[0] * _normal_pdf(z), 0.0)  # du/dz = phi(z)
+        grad = np.where(mask, grad_u[0] * stats.norm.pdf(z), 0.0)  # du/dz = phi(z)
         norm = float(np.linalg.norm(z[mask]))
         history.append((norm, float(exact[0])))
         if exact[0] > 0 and norm < best_norm:
@@ -239,10 +239,6 @@ def design_point(
             new = z + step * (max_norm / n)
         z = new
     return (z if best is None else best), history
-
-
-def _normal_pdf(z):
-    return np.exp(-0.5 * z**2) / np.sqrt(2.0 * np.pi)
 
 
 Z_BOUND = 5.2
@@ -348,7 +344,7 @@ def design_point_search(
                 raise _BudgetSpent
             z = full(x)
             value, grad_u, exact = problem.value_and_grad(to_unit(z)[None])
-            grad = grad_u[0] * _normal_pdf(z)  # du/dz = phi(z)
+            grad = grad_u[0] * stats.norm.pdf(z)  # du/dz = phi(z)
             distance = float(np.linalg.norm(x))
             history.append((len(history) + 1, distance, float(value[0]), float(exact[0])))
             if exact[0] > 0:

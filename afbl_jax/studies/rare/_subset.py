@@ -161,7 +161,6 @@ def subset_simulation(
     stages: list[dict] = []
     log_before = 0.0  # log of the product of the earlier levels' conditional probabilities
     gamma, rate, lam = 0.0, None, 0.6
-    deltas: list[float] = []
     for level in range(max_levels + 1):
         n = margin.shape[0]
         b = _threshold(margin, nc)
