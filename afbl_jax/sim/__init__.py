@@ -2,7 +2,9 @@
 grouped ensembles on the lean loop or diffeqsolve, float32, chunks, devices), the status
 enumeration and CPU devices."""
 
+from ._batch import CPU_COMPILER_OPTIONS as CPU_COMPILER_OPTIONS
 from ._batch import STRATEGIES as STRATEGIES
+from ._batch import batch_compiler_options as batch_compiler_options
 from ._batch import case_layout as case_layout
 from ._batch import ensemble_vector_field as ensemble_vector_field
 from ._batch import simulate_batch as simulate_batch

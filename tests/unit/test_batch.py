@@ -218,3 +218,18 @@ def test_realistic_vehicle_ensemble_agrees_with_simulate(cases):
     )
     with pytest.raises(ValueError, match="share their control sample instants"):
         A.simulate_batch(ctrl, scenarios, unmodeled=bad, strategy="ensemble", group_size=2)
+
+
+def test_compiler_options_are_used_and_change_no_number(cases, monkeypatch):
+    """The batched solves compile with `CPU_COMPILER_OPTIONS` where XLA knows them (the
+    versions this project is tested with do), and every metric is bitwise the one XLA's
+    default compilation gives."""
+    from afbl_jax.sim import _batch
+
+    assert A.sim.batch_compiler_options() == A.sim.CPU_COMPILER_OPTIONS
+    kw = {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5, "atol": 1e-6, "n_save": 41}
+    tuned = A.simulate_batch(A.AFBL(), cases[0], **kw)
+    monkeypatch.setattr(_batch, "_compiled_run", lambda: eqx.filter_jit(_batch._run))
+    plain = A.simulate_batch(A.AFBL(), cases[0], **kw)
+    for a, b in zip(jax.tree.leaves(tuned), jax.tree.leaves(plain)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
