@@ -33,18 +33,6 @@ def rotation_matrix(phi: Scalar, theta: Scalar, psi: Scalar) -> Array:
     )
 
 
-def rotate(rot: Array, v: Vec3) -> Vec3:
-    """R v for a (3, 3) rotation ``rot`` and a 3-vector ``v`` (an elementwise product summed
-    over the short axis: under `jax.vmap` a 3x3 ``@`` becomes a batched matrix product, which
-    XLA's CPU backend runs slower)."""
-    return jnp.sum(rot * v, axis=1)
-
-
-def rotate_back(rot: Array, v: Vec3) -> Vec3:
-    """R^T v for a (3, 3) rotation ``rot`` and a 3-vector ``v`` (see `rotate`)."""
-    return jnp.sum(rot * v[:, None], axis=0)
-
-
 def thrust_direction(phi: Scalar, theta: Scalar, psi: Scalar) -> Vec3:
     """Third column of `rotation_matrix`: the body z axis (thrust direction) in the earth frame
     (its three entries only)."""

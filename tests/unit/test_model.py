@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import afbl_jax as A
-from afbl_jax.model import rotate, rotate_back, safe_sqrt
+from afbl_jax.model import safe_sqrt
 
 P = A.QuadrotorParams()
 
@@ -33,20 +33,6 @@ def test_thrust_direction_is_third_column_of_zyx_rotation():
         r = _rot(phi, theta, psi)
         np.testing.assert_allclose(A.thrust_direction(phi, theta, psi), r[:, 2], atol=1e-14)
         np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-14)
-
-
-def test_rotate_and_rotate_back_are_r_v_and_r_transpose_v():
-    rng = np.random.default_rng(1)
-    for phi, theta, psi in rng.uniform(-1.2, 1.2, size=(10, 3)):
-        r, v = _rot(phi, theta, psi), rng.normal(size=3)
-        rj = A.rotation_matrix(phi, theta, psi)
-        np.testing.assert_allclose(rotate(rj, v), r @ v, atol=1e-14)
-        np.testing.assert_allclose(rotate_back(rj, v), r.T @ v, atol=1e-14)
-    # under vmap (the batched solves) as well
-    angles, vs = rng.uniform(-1.2, 1.2, size=(5, 3)), rng.normal(size=(5, 3))
-    got = jax.vmap(lambda a, v: rotate_back(A.rotation_matrix(*a), v))(angles, vs)
-    want = np.stack([_rot(*a).T @ v for a, v in zip(angles, vs)])
-    np.testing.assert_allclose(got, want, atol=1e-14)
 
 
 def test_hover_is_an_equilibrium():
