@@ -34,12 +34,8 @@ def rotation_matrix(phi: Scalar, theta: Scalar, psi: Scalar) -> Array:
 
 
 def thrust_direction(phi: Scalar, theta: Scalar, psi: Scalar) -> Vec3:
-    """Third column of `rotation_matrix`: the body z axis (thrust direction) in the earth frame
-    (its three entries only)."""
-    cphi, sphi = jnp.cos(phi), jnp.sin(phi)
-    cth, sth = jnp.cos(theta), jnp.sin(theta)
-    cpsi, spsi = jnp.cos(psi), jnp.sin(psi)
-    return jnp.stack([cphi * sth * cpsi + sphi * spsi, cphi * sth * spsi - sphi * cpsi, cphi * cth])
+    """Third column of `rotation_matrix`: the body z axis (thrust direction) in the earth frame."""
+    return rotation_matrix(phi, theta, psi)[:, 2]
 
 
 def euler_rates_from_body_rates(phi: Scalar, theta: Scalar, omega: Vec3) -> Vec3:

@@ -464,7 +464,10 @@ def simulate_batch(
             None if group_size is None else int(group_size),
         )
     part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
-    return _compiled_run()(
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((part, fixed)))
+    # compiler options apply to a top-level compilation only (not inside another jit)
+    run = eqx.filter_jit(_run) if traced else _compiled_run()
+    return run(
         part,
         fixed,
         n,
