@@ -178,7 +178,7 @@ CPU_COMPILER_OPTIONS: dict[str, object] = {"xla_cpu_copy_insertion_use_region_an
 """XLA options the batched solves are compiled with where the installed XLA has them: copy
 insertion by region analysis drops the copies of the Runge-Kutta stage buffers that the while
 loops carry (measured ~5 % faster on the Monte-Carlo default on a CPU, bitwise the same
-results; other backends ignore it)."""
+results)."""
 
 
 @functools.cache
@@ -192,11 +192,15 @@ def batch_compiler_options() -> dict[str, object]:
     return dict(CPU_COMPILER_OPTIONS)
 
 
+_plain_run = eqx.filter_jit(_run)
+"""`_run` jitted with XLA's defaults (and inside another jit, where options are refused)."""
+
+
 @functools.cache
 def _compiled_run():
     """`_run` jitted with `batch_compiler_options`."""
     options = batch_compiler_options()
-    return eqx.filter_jit(_run, compiler_options=options) if options else eqx.filter_jit(_run)
+    return eqx.filter_jit(_run, compiler_options=options) if options else _plain_run
 
 
 def _leading(x) -> int | None:
@@ -466,7 +470,7 @@ def simulate_batch(
     part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((part, fixed)))
     # compiler options apply to a top-level compilation only (not inside another jit)
-    run = eqx.filter_jit(_run) if traced else _compiled_run()
+    run = _plain_run if traced else _compiled_run()
     return run(
         part,
         fixed,
