@@ -94,6 +94,7 @@ from .sim import ClosedLoopState as ClosedLoopState
 from .sim import DivergenceLimits as DivergenceLimits
 from .sim import SimulationResult as SimulationResult
 from .sim import Status as Status
+from .sim import configure_compilation_cache as configure_compilation_cache
 from .sim import configure_cpu_devices as configure_cpu_devices
 from .sim import ensemble_rms_norm as ensemble_rms_norm
 from .sim import ensemble_vector_field as ensemble_vector_field

@@ -1,9 +1,12 @@
 import gc
+import os
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# the compilation counts of the tests need real compilations, not loads from a cache
+os.environ["AFBL_COMPILATION_CACHE"] = "off"
 
 
 @pytest.fixture(autouse=True, scope="module")

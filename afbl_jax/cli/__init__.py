@@ -1,14 +1,16 @@
 """The ``afbl`` command: one module per subcommand over the public API.
 
-`main` splits the CPU into one XLA device per core (before JAX starts), switches JAX's 64-bit
-mode on once (before any gains or distribution file is read, so numbers keep full precision),
-parses the arguments and runs the subcommand. Every user error takes one path: a single line
-``afbl <command>: error: <what was wrong and what is allowed>`` on stderr, exit status 2, no
-traceback. That includes argparse's own errors (unknown flag, a value of the wrong type, a
-missing --out: the line ends with "(see afbl <command> --help)" instead of argparse's usage
-block), validation errors of files and settings (ValueError), and operating-system errors
-(OSError: an unreadable file, a folder that cannot be written). Ctrl-C prints one line
-and exits with status 130 (a Monte-Carlo run resumes when the same command is run again).
+`main` splits the CPU into one XLA device per core (before JAX starts), keeps XLA's compiled
+programs between runs (`afbl_jax.configure_compilation_cache`; ``AFBL_COMPILATION_CACHE=off``
+for none), switches JAX's 64-bit mode on once (before any gains or distribution file is read,
+so numbers keep full precision), parses the arguments and runs the subcommand. Every user error
+takes one path: a single line ``afbl <command>: error: <what was wrong and what is allowed>``
+on stderr, exit status 2, no traceback. That includes argparse's own errors (unknown flag, a
+value of the wrong type, a missing --out: the line ends with "(see afbl <command> --help)"
+instead of argparse's usage block), validation errors of files and settings (ValueError), and
+operating-system errors (OSError: an unreadable file, a folder that cannot be written). Ctrl-C
+prints one line and exits with status 130 (a Monte-Carlo run resumes when the same command is
+run again).
 """
 
 from __future__ import annotations
@@ -41,10 +43,23 @@ def _configure_devices() -> None:
         print(f"afbl: warning: {err}", file=sys.stderr)
 
 
+def _configure_cache() -> None:
+    """XLA's compiled programs kept between runs (`configure_compilation_cache`); a folder
+    that cannot be created costs only the speed-up."""
+    from ..sim import configure_compilation_cache
+
+    try:
+        configure_compilation_cache()
+    except OSError as err:
+        print(f"afbl: warning: no compilation cache ({one_line(str(err))})", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``afbl`` with ``argv`` (default: the command line); returns the exit status."""
     _configure_devices()
     import jax
+
+    _configure_cache()
 
     jax.config.update("jax_enable_x64", True)
     parser = build_parser()

@@ -1,6 +1,6 @@
 """The closed loop and its solves: one case (`simulate`), many cases (`simulate_batch`: vmap or
 grouped ensembles on the lean loop or diffeqsolve, float32, chunks, devices), the status
-enumeration and CPU devices."""
+enumeration, CPU devices and the compilation cache."""
 
 from ._batch import CPU_COMPILER_OPTIONS as CPU_COMPILER_OPTIONS
 from ._batch import STRATEGIES as STRATEGIES
@@ -8,6 +8,9 @@ from ._batch import batch_compiler_options as batch_compiler_options
 from ._batch import case_layout as case_layout
 from ._batch import ensemble_vector_field as ensemble_vector_field
 from ._batch import simulate_batch as simulate_batch
+from ._cache import CACHE_ENV_VAR as CACHE_ENV_VAR
+from ._cache import configure_compilation_cache as configure_compilation_cache
+from ._cache import default_cache_dir as default_cache_dir
 from ._closed_loop import COST_LAYOUT as COST_LAYOUT
 from ._closed_loop import CaseInputs as CaseInputs
 from ._closed_loop import ClosedLoop as ClosedLoop

@@ -79,6 +79,28 @@ def test_sampler_is_deterministic_and_per_case(dist):
     assert a[1:3].n_cases == 2
 
 
+def test_sample_cases_at_draws_the_chunk_rows_bitwise(dist):
+    chunk = mc.sample_cases(dist, CHUNK, 3, start=4)  # cases 4..7
+    with count_compiles() as compiles:
+        # the chunk's compiled sampler again (padded to its size): no compilation
+        at = mc.sample_cases_at(dist, [6, 4], 3, size=CHUNK)
+    assert compiles.count == 0
+    assert at.n_cases == 2 and list(at.index) == [6, 4]
+    leaves = jax.tree.leaves
+    assert all(
+        np.array_equal(x, y) for x, y in zip(leaves(at), leaves(chunk.take([2, 0])), strict=True)
+    )
+    unpadded = mc.sample_cases_at(dist, [6], 3)
+    np.testing.assert_allclose(
+        unpadded.inputs["payload_fraction"], chunk.inputs["payload_fraction"][2:3], rtol=1e-12
+    )
+    for bad, match in [([], "at least one"), ([-1], r"\[0, 2\^63 - 1\]")]:
+        with pytest.raises(ValueError, match=match):
+            mc.sample_cases_at(dist, bad, 3)
+    with pytest.raises(ValueError, match="size must be an integer >= the 2 indices"):
+        mc.sample_cases_at(dist, [1, 2], 3, size=1)
+
+
 def _write(tmp_path, name, text):
     path = tmp_path / name
     path.write_text(text)

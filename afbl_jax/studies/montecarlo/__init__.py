@@ -43,6 +43,7 @@ from ._sampler import draw_variates as draw_variates
 from ._sampler import fixed_variates as fixed_variates
 from ._sampler import nominal_model as nominal_model
 from ._sampler import sample_cases as sample_cases
+from ._sampler import sample_cases_at as sample_cases_at
 from ._sampler import variate_groups as variate_groups
 from ._sampler import variate_layout as variate_layout
 from ._sampler import variate_names as variate_names

@@ -23,6 +23,7 @@ import html
 import io
 import json
 import math
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -241,18 +242,33 @@ def worst_cases(cols, k: int = 5) -> list[int]:
 
 
 def replay_worst(
-    cols, controllers: dict, distribution, seed: int, k: int = 5, settings=None
+    cols,
+    controllers: dict,
+    distribution,
+    seed: int,
+    k: int = 5,
+    settings=None,
+    *,
+    chunk_size: int | None = None,
 ) -> dict[int, dict]:
-    """Re-simulate the k worst cases with every controller (trajectories kept)."""
+    """Re-simulate the k worst cases with every controller (trajectories kept).
+
+    ``chunk_size``: the run's chunk size; the cases are drawn in a batch of that size
+    (`sample_cases_at`), with the sampler the run compiled and bitwise the inputs the run
+    simulated."""
     from ...sim import simulate
     from ._runner import SolverSettings
-    from ._sampler import sample_cases
+    from ._sampler import sample_cases_at
 
     settings = (settings or SolverSettings()).with_tolerances_for("vmap")
+    cases = worst_cases(cols, k)
+    if not cases:
+        return {}
+    size = chunk_size if chunk_size is not None and chunk_size >= len(cases) else None
+    batch = sample_cases_at(distribution, cases, seed, size=size)
     out = {}
-    for case in worst_cases(cols, k):
-        batch = sample_cases(distribution, 1, seed, start=case)
-        scenario, vehicle, model = batch.case(0)
+    for i, case in enumerate(cases):
+        scenario, vehicle, model = batch.case(i)
         out[case] = {
             name: simulate(
                 ctrl,
@@ -264,7 +280,7 @@ def replay_worst(
                 atol=settings.atol,
                 n_save=801,
                 max_steps=settings.max_steps,
-                unmodeled=batch.unmodeled_case(0),
+                unmodeled=batch.unmodeled_case(i),
                 aerodynamics=batch.aerodynamics,
             )
             for name, ctrl in controllers.items()
@@ -454,10 +470,14 @@ def write_report(
     summary: dict,
     distribution,
     meta: dict,
-    replays: dict | None = None,
+    replays: dict | Future | None = None,
     figures: bool = True,
 ) -> dict[str, Path]:
-    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html."""
+    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html.
+
+    ``replays``: `replay_worst`'s trajectories, or a `concurrent.futures.Future` of them (it
+    is waited for when their figure, the last one, is drawn: the replays' compilations, which
+    release Python's lock, run while the other figures are drawn)."""
     out = Path(out)
     atomic_write_text(summary_json(summary), out / "summary.json")
     figs: list[tuple[str, str, bytes]] = []
@@ -473,10 +493,18 @@ def write_report(
                 ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols))
             ]
             makers.append(("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)))
-        if replays:
-            makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
+        if replays is not None:
+
+            def worst():
+                runs = replays.result() if isinstance(replays, Future) else replays
+                return figure_worst(runs) if runs else None
+
+            makers.append(("worst_cases", "five worst cases", worst))
         for stem, title, make in makers:
-            data = _png(make())
+            fig = make()
+            if fig is None:
+                continue
+            data = _png(fig)
             atomic_write_bytes(data, fig_dir / f"{stem}.png")
             figs.append((stem, title, data))
     cfg = meta.get("config", {})

@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -132,6 +133,7 @@ def _write_meta(out: Path, elapsed: float) -> dict:
 
 
 def _finish(out: Path, table, controllers, distribution, seed, *, report, echo, elapsed) -> dict:
+    t_report = time.perf_counter()
     cols = table_columns(table)
     summary = summarize(cols)
     # runs sharing the folder write their (equal) reports one after the other
@@ -140,10 +142,19 @@ def _finish(out: Path, table, controllers, distribution, seed, *, report, echo, 
         settings = SolverSettings(**meta["config"]["settings"])
         n_cases = int(meta["config"]["n_cases"])
         if report:
-            replays = replay_worst(
-                cols, controllers, distribution, seed, k=min(5, n_cases), settings=settings
-            )
-            write_report(out, cols, summary, distribution, meta, replays)
+            # the worst cases are re-simulated while the other figures are drawn
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                replays = pool.submit(
+                    replay_worst,
+                    cols,
+                    controllers,
+                    distribution,
+                    seed,
+                    k=min(5, n_cases),
+                    settings=settings,
+                    chunk_size=int(meta["config"]["chunk_size"]),
+                )
+                write_report(out, cols, summary, distribution, meta, replays)
         else:
             atomic_write_text(summary_json(summary), out / "summary.json")
     if echo is not None:
@@ -151,6 +162,8 @@ def _finish(out: Path, table, controllers, distribution, seed, *, report, echo, 
         echo(
             f"\nwrote {out}/results.parquet, meta.json, summary.json"
             + (", report.md, report.html" if report else "")
-            + f" ({elapsed:.1f} s)"
+            + f" (runs {elapsed:.1f} s, "
+            + ("report" if report else "summary")
+            + f" {time.perf_counter() - t_report:.1f} s)"
         )
     return summary

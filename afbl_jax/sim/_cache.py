@@ -1,0 +1,53 @@
+"""A persistent cache of XLA's compiled programs: a command run again loads its programs
+instead of compiling them."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+CACHE_ENV_VAR = "AFBL_COMPILATION_CACHE"
+"""Environment variable: the cache folder `configure_compilation_cache` uses, or ``off`` (also
+``0``, ``none``, ``false``, ``no``) for no cache."""
+
+_OFF = frozenset({"off", "0", "none", "false", "no"})
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/afbl-jax/xla`` (``~/.cache/afbl-jax/xla`` when it is unset)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "afbl-jax" / "xla"
+
+
+def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
+    """Keep XLA's compiled programs in ``path`` (JAX's persistent compilation cache), so that a
+    later process with the same programs (same code, shapes, tolerances, devices, JAX version)
+    loads them instead of compiling them again.
+
+    ``path`` None: ``$AFBL_COMPILATION_CACHE``, else `default_cache_dir`. The ``afbl`` command
+    calls this at start-up. Only programs that took at least JAX's threshold to compile (1 s by
+    default, ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``) are written, a few hundred kB
+    each; nothing is evicted, so delete the folder to clear it. Programs that call back into
+    Python (the checked errors of `simulate`) are never cached, by JAX's rule. A cached program
+    is the same executable, so the numbers are bitwise the same as after compiling.
+
+    Does nothing and returns None when ``$AFBL_COMPILATION_CACHE`` is ``off`` (or ``0``,
+    ``none``, ``false``, ``no``) and ``path`` is None, or when JAX already has a cache folder
+    (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``); returns the folder in use otherwise.
+
+    Raises:
+        OSError: the folder cannot be created.
+    """
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return None
+    if path is None:
+        env = os.environ.get(CACHE_ENV_VAR)
+        if env is not None and env.strip().lower() in _OFF | {""}:
+            return None
+        path = env if env is not None else default_cache_dir()
+    folder = Path(path).expanduser()
+    folder.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    return folder

@@ -1,0 +1,87 @@
+"""The persistent compilation cache: a second process loads the programs the first one
+compiled, with bitwise the same numbers; it can be switched off; an unusable folder costs only
+a warning."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import afbl_jax as A
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# one small ensemble solve; prints the cache loads, the compilations and the metrics
+SCRIPT = """
+import json, sys
+import jax
+import jax.monitoring as mon
+jax.config.update("jax_enable_x64", True)
+import afbl_jax as A
+counts = {"hits": 0, "compiles": 0}
+def on_event(name, **kw):
+    if name == "/jax/compilation_cache/cache_hits":
+        counts["hits"] += 1
+def on_duration(name, d, **kw):
+    if name == "/jax/core/compile/backend_compile_duration":
+        counts["compiles"] += 1
+mon.register_event_listener(on_event)
+mon.register_event_duration_secs_listener(on_duration)
+folder = A.configure_compilation_cache()
+scenarios = A.stack_scenarios([A.paper_scenario("uncertain", "step")] * 4)
+m = A.simulate_batch(A.AFBL(), scenarios, A.QuadrotorParams(), strategy="ensemble",
+                     dtype="float32", rtol=1e-5, atol=1e-6, n_save=0, devices=jax.devices()[:1])
+print(json.dumps({"folder": str(folder), **counts,
+                  "ise": [float(x) for x in m.ise_attitude],
+                  "steps": [int(x) for x in m.num_steps]}))
+"""
+
+
+def _run(env_extra: dict) -> dict:
+    env = {**os.environ, **env_extra, "PYTHONPATH": str(ROOT)}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    out = subprocess.run(
+        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_second_process_loads_the_programs_with_the_same_numbers(tmp_path):
+    env = {
+        "AFBL_COMPILATION_CACHE": str(tmp_path / "xla"),
+        # cache every program, however fast it compiled (the default threshold is 1 s)
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+    }
+    first = _run(env)
+    assert first["folder"] == str(tmp_path / "xla")
+    assert first["compiles"] > 0
+    entries = sorted(p.name for p in (tmp_path / "xla").iterdir())
+    assert entries  # the programs were written
+    second = _run(env)
+    # every program of the second process is loaded (JAX's compile event fires for loads too;
+    # a program compiled twice in one process is loaded the second time: hits in the first)
+    assert second["hits"] == second["compiles"] == first["compiles"] > first["hits"]
+    assert second["ise"] == first["ise"] and second["steps"] == first["steps"]
+    # nothing new to write: the same programs
+    assert sorted(p.name for p in (tmp_path / "xla").iterdir()) == entries
+
+
+def test_cache_off_and_unusable_folder(tmp_path, monkeypatch):
+    off = _run({"AFBL_COMPILATION_CACHE": "off"})
+    assert off["folder"] == "None" and off["hits"] == 0
+    monkeypatch.setenv("AFBL_COMPILATION_CACHE", "off")
+    assert A.configure_compilation_cache() is None  # in-process: nothing changed
+    # a folder that cannot be created: one warning line, the command still runs
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    env = {**os.environ, "AFBL_COMPILATION_CACHE": str(blocker / "xla"), "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        [sys.executable, "-c", "from afbl_jax.cli import main; main(['reproduce', '--help'])"],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    warning = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(warning) == 1 and warning[0].startswith("afbl: warning: no compilation cache")
