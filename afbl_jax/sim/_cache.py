@@ -28,8 +28,9 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
     calls this at start-up. Only programs that took at least JAX's threshold to compile (1 s by
     default, ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``) are written, a few hundred kB
     each; nothing is evicted, so delete the folder to clear it. Programs that call back into
-    Python (the checked errors of `simulate`) are never cached, by JAX's rule. A cached program
-    is the same executable, so the numbers are bitwise the same as after compiling.
+    Python are never cached, by JAX's rule: `simulate`'s are not (diffrax checks its save
+    times with a host callback). A cached program is the same executable, so the numbers are
+    bitwise the same as after compiling.
 
     Does nothing and returns None when ``$AFBL_COMPILATION_CACHE`` is ``off`` (or ``0``,
     ``none``, ``false``, ``no``) and ``path`` is None, or when JAX already has a cache folder

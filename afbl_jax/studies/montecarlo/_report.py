@@ -475,9 +475,9 @@ def write_report(
 ) -> dict[str, Path]:
     """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html.
 
-    ``replays``: `replay_worst`'s trajectories, or a `concurrent.futures.Future` of them (it
-    is waited for when their figure, the last one, is drawn: the replays' compilations, which
-    release Python's lock, run while the other figures are drawn)."""
+    ``replays``: `replay_worst`'s trajectories, or a `concurrent.futures.Future` of them,
+    waited for only when their figure, the last one, is drawn (so they can be computed in
+    another thread while the other figures are drawn)."""
     out = Path(out)
     atomic_write_text(summary_json(summary), out / "summary.json")
     figs: list[tuple[str, str, bytes]] = []
