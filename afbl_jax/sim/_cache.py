@@ -10,7 +10,7 @@ CACHE_ENV_VAR = "AFBL_COMPILATION_CACHE"
 """Environment variable: the cache folder `configure_compilation_cache` uses, or ``off`` (also
 ``0``, ``none``, ``false``, ``no``) for no cache."""
 
-_OFF = frozenset({"off", "0", "none", "false", "no"})
+_OFF = frozenset({"off", "0", "none", "false", "no", ""})
 
 
 def default_cache_dir() -> Path:
@@ -45,7 +45,7 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
         return None
     if path is None:
         env = os.environ.get(CACHE_ENV_VAR)
-        if env is not None and env.strip().lower() in _OFF | {""}:
+        if env is not None and env.strip().lower() in _OFF:
             return None
         path = env if env is not None else default_cache_dir()
     folder = Path(path).expanduser()

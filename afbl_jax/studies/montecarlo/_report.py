@@ -23,7 +23,6 @@ import html
 import io
 import json
 import math
-from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -470,14 +469,10 @@ def write_report(
     summary: dict,
     distribution,
     meta: dict,
-    replays: dict | Future | None = None,
+    replays: dict | None = None,
     figures: bool = True,
 ) -> dict[str, Path]:
-    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html.
-
-    ``replays``: `replay_worst`'s trajectories, or a `concurrent.futures.Future` of them,
-    waited for only when their figure, the last one, is drawn (so they can be computed in
-    another thread while the other figures are drawn)."""
+    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html."""
     out = Path(out)
     atomic_write_text(summary_json(summary), out / "summary.json")
     figs: list[tuple[str, str, bytes]] = []
@@ -493,18 +488,10 @@ def write_report(
                 ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols))
             ]
             makers.append(("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)))
-        if replays is not None:
-
-            def worst():
-                runs = replays.result() if isinstance(replays, Future) else replays
-                return figure_worst(runs) if runs else None
-
-            makers.append(("worst_cases", "five worst cases", worst))
+        if replays:
+            makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
         for stem, title, make in makers:
-            fig = make()
-            if fig is None:
-                continue
-            data = _png(fig)
+            data = _png(make())
             atomic_write_bytes(data, fig_dir / f"{stem}.png")
             figs.append((stem, title, data))
     cfg = meta.get("config", {})

@@ -475,16 +475,22 @@ def nominal_model(distribution: Distribution) -> QuadrotorParams:
     return QuadrotorParams()
 
 
-def case_keys(seed: int, index) -> Array:
-    """The PRNG key of every case index (shape (n, 2)): ``fold_in(PRNGKey(seed), i)`` for
-    i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
-    i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
+def _case_index(index) -> np.ndarray:
+    """Case indices as int64 (at most MAX_CASE_INDEX), checked to lie in [0, 2^63 - 1]."""
     try:
-        index = np.asarray(index, dtype=np.int64)  # int64: at most MAX_CASE_INDEX
+        index = np.asarray(index, dtype=np.int64)
     except OverflowError:
         index = np.array([-1])
     if index.size and index.min() < 0:
         raise ValueError("case indices must be integers in [0, 2^63 - 1].")
+    return index
+
+
+def case_keys(seed: int, index) -> Array:
+    """The PRNG key of every case index (shape (n, 2)): ``fold_in(PRNGKey(seed), i)`` for
+    i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
+    i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
+    index = _case_index(index)
     lo = jnp.asarray((index & 0xFFFFFFFF).astype(np.uint32))
     hi = jnp.asarray((index >> 32).astype(np.uint32))
     return _keys(jax.random.PRNGKey(check_seed(seed)), lo, hi)
@@ -525,10 +531,7 @@ def sample_cases_at(
     padding is dropped), so that the sampler compiled for a chunk of that size is used again
     instead of compiling one for ``len(index)`` cases (about 2.5 s on a 2-core CPU).
     """
-    try:
-        index = np.asarray(index, dtype=np.int64).reshape(-1)
-    except OverflowError:
-        raise ValueError("case indices must be integers in [0, 2^63 - 1].") from None
+    index = _case_index(index).reshape(-1)
     if index.size == 0:
         raise ValueError("sample_cases_at needs at least one case index.")
     if size is not None and (isinstance(size, bool) or int(size) < index.size):

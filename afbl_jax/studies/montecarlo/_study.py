@@ -7,7 +7,6 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,19 +141,16 @@ def _finish(out: Path, table, controllers, distribution, seed, *, report, echo, 
         settings = SolverSettings(**meta["config"]["settings"])
         n_cases = int(meta["config"]["n_cases"])
         if report:
-            # the worst cases are re-simulated while the other figures are drawn
-            with ThreadPoolExecutor(max_workers=1) as pool:
-                replays = pool.submit(
-                    replay_worst,
-                    cols,
-                    controllers,
-                    distribution,
-                    seed,
-                    k=min(5, n_cases),
-                    settings=settings,
-                    chunk_size=int(meta["config"]["chunk_size"]),
-                )
-                write_report(out, cols, summary, distribution, meta, replays)
+            replays = replay_worst(
+                cols,
+                controllers,
+                distribution,
+                seed,
+                k=min(5, n_cases),
+                settings=settings,
+                chunk_size=int(meta["config"]["chunk_size"]),
+            )
+            write_report(out, cols, summary, distribution, meta, replays)
         else:
             atomic_write_text(summary_json(summary), out / "summary.json")
     if echo is not None:
