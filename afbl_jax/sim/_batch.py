@@ -85,10 +85,25 @@ def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrat
     return jax.vmap(one, axis_size=n)(part)
 
 
-def _ensemble(group_size, part, fixed, n, *rest) -> BatchMetrics:
+def _ensemble(group_size, part, fixed, n, *rest, lanes=None) -> BatchMetrics:
     return solve_group(
-        part, fixed, n, *rest, group_size=None if group_size is None else min(group_size, n)
+        part,
+        fixed,
+        n,
+        *rest,
+        group_size=None if group_size is None else min(group_size, n),
+        lanes=lanes,
     )
+
+
+QUEUE_POOL_CHUNKS = 16
+"""With the work queue, at most this many chunks' cases share one queue (the pool's stored
+states grow with it); a device with more chunks runs its pools one after the other."""
+
+
+def _pool_chunks(n_chunks: int) -> int:
+    """Chunks per work-queue pool: the largest divisor of ``n_chunks`` <= `QUEUE_POOL_CHUNKS`."""
+    return max(k for k in range(1, min(n_chunks, QUEUE_POOL_CHUNKS) + 1) if n_chunks % k == 0)
 
 
 def case_layout(n: int, n_dev: int, chunk_size: int | None, group: int):
@@ -126,31 +141,44 @@ def _run(
     n_save,
     devices,
     integrator,
+    work_queue=True,
 ) -> BatchMetrics:
     """``part``: the leaves that differ between cases (leading axis n); ``fixed``: the leaves
     shared by every case (unbatched), so per-evaluation work on them is done once."""
     n_dev = len(devices)
     index, chunk, n_chunks, per_dev = case_layout(n, n_dev, chunk_size, group_size or 1)
     local_n = n_chunks * chunk
+    digital = eqx.combine(part, fixed)[0].digital
+    queue = (
+        work_queue
+        and strategy == "ensemble"
+        and integrator == "lean"
+        and group_size is not None
+        and not digital
+        and n_chunks > 1
+    )
+    # with the work queue, a pool of chunks is one solve whose lanes are one chunk's groups
+    size = chunk * (_pool_chunks(n_chunks) if queue else 1)
+    n_solves = n_chunks * chunk // size
 
     def solve(p, fx):
-        args = (p, fx, chunk, solver, rtol, atol, np.dtype(dtype), max_steps, n_save, integrator)
+        args = (p, fx, size, solver, rtol, atol, np.dtype(dtype), max_steps, n_save, integrator)
         if strategy == "ensemble":
-            return _ensemble(group_size, *args)
+            return _ensemble(group_size, *args, lanes=chunk // group_size if queue else None)
         return _vmap(*args)
 
     def local(p, fx):
-        # this device's cases, as consecutive chunks inside the one compiled program
-        if n_chunks == 1:
+        # this device's cases, as consecutive chunks (or pools) inside the one compiled program
+        if n_solves == 1:
             return solve(p, fx)
-        split = jax.tree.map(lambda x: x.reshape(n_chunks, chunk, *x.shape[1:]), p)
+        split = jax.tree.map(lambda x: x.reshape(n_solves, size, *x.shape[1:]), p)
         if jax.tree.leaves(split):
             # scanned over the chunks' inputs: each chunk's slice is materialised once (a
             # dynamic index inside the solve was re-read at every use: measured 5 % slower)
             out = jax.lax.map(lambda q: solve(q, fx), split)
         else:  # every leaf is shared: map over chunk indices
-            out = jax.lax.map(lambda i: solve(split, fx), jnp.arange(n_chunks))
-        return jax.tree.map(lambda x: x.reshape(n_chunks * chunk, *x.shape[2:]), out)
+            out = jax.lax.map(lambda i: solve(split, fx), jnp.arange(n_solves))
+        return jax.tree.map(lambda x: x.reshape(n_solves * size, *x.shape[2:]), out)
 
     part = jax.tree.map(lambda x: x[index], part)
     if n_dev == 1:
@@ -373,6 +401,7 @@ def simulate_batch(
     n_save: int = 0,
     devices=None,
     integrator: Literal["lean", "diffeqsolve"] = "lean",
+    work_queue: bool = True,
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -408,6 +437,11 @@ def simulate_batch(
             reverse-mode differentiable) or ``"diffeqsolve"`` (`diffrax.diffeqsolve`; use it
             for `jax.grad` through the ensemble). Both take the same steps and agree case by
             case.
+        work_queue: ``"lean"`` with ``group_size``, continuous control and more than one chunk
+            per device: a chunk's groups are the lanes of a work queue over the device's
+            cases (up to `QUEUE_POOL_CHUNKS` chunks per queue): a group that is done hands its
+            lane to the next group instead of the chunk waiting for its slowest group. Every
+            group takes the steps it takes alone. False: the chunks one after the other.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -486,4 +520,5 @@ def simulate_batch(
         int(n_save),
         devices,
         integrator,
+        bool(work_queue),
     )

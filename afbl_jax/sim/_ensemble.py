@@ -157,11 +157,14 @@ def solve_group(
     n_save,
     integrator="lean",
     group_size=None,
+    lanes=None,
 ) -> BatchMetrics:
     """The n cases of ``part`` ((ClosedLoop, CaseInputs) leaves with leading axis n, sharing
     ``fixed``: leaves equal for every case, unbatched, evaluated once per group) in groups of
     ``group_size`` consecutive cases (None: one group), each one ensemble; ``integrator``:
-    one of `INTEGRATORS` (module docstring)."""
+    one of `INTEGRATORS` (module docstring); ``lanes`` (``"lean"``, continuous control): groups
+    advanced at a time, a finished group's lane taking the next group (`lean_loop`'s work
+    queue); None: all groups at once."""
     if integrator not in INTEGRATORS:
         raise ValueError(f"unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}.")
     g = n if group_size is None else int(group_size)
@@ -177,10 +180,10 @@ def solve_group(
         controllers = eqx.filter_vmap(
             lambda j: step_size_controller(rtol, atol, j, norm=_last_axis_norm)
         )(jumps)
-        solve = _lean_digital if loop.digital else _lean_continuous
-        return solve(
-            part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
-        )
+        args = (part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save)
+        if loop.digital:
+            return _lean_digital(*args)
+        return _lean_continuous(*args, lanes=lanes)
 
     def one_group(p):
         state0 = _per_case(lambda lp, inp: lp.initial_state(inp, dtype), p, fixed, g)
@@ -541,7 +544,7 @@ def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetri
 
 def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
     """Store the state at every save time ts[j] <= t_hi[i] not yet taken by group i
-    (``stored`` = (next index per group (G,), states: leaves (n_save, n, ...)));
+    (``stored`` = (next index per group (G,), states: leaves (n_save, ..., n)));
     ``state_at(t)``: the state at per-group times t (G,), leaves with the case axis last.
     The peaks are computed from the stored states after the loop (`_stored_peaks`): one
     sample per save time instead of one per step."""
@@ -551,7 +554,7 @@ def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
     def take(states, j, t, due):
         row = jnp.where(groups.per_case(due), groups.per_case(j), dropped)
         return jax.tree.map(
-            lambda s, x: s.at[row, cases].set(jnp.moveaxis(x, -1, 0), mode="drop"),
+            lambda s, x: s.at[row, ..., cases].set(jnp.moveaxis(x, -1, 0), mode="drop"),
             states,
             state_at(t),
         )
@@ -563,9 +566,9 @@ def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
     """Running peaks (n, 3) (`fold_peaks`) from the states `_store_samples` stored: the
     samples taken (j < the group's next index) that count (at or before the case's end)."""
     j_next, states = stored
-    samples = jax.vmap(
-        lambda t, y: sample((jnp.full((groups.count,), t),), _to_last(y)), in_axes=(0, 0)
-    )(ts, states)  # (n_save, n, 3)
+    samples = jax.vmap(lambda t, y: sample((jnp.full((groups.count,), t),), y), in_axes=(0, 0))(
+        ts, states
+    )  # (n_save, n, 3)
     taken = jnp.arange(ts.shape[0])[:, None] < groups.per_case(j_next)[None, :]
     counts = taken & cases.counts(ts[:, None])
     return jnp.max(fold_peaks(no_peaks(counts.shape, samples.dtype), samples, counts), axis=0)
@@ -579,7 +582,7 @@ def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
     if not n_save:
         peaks = None
     elif store:
-        states = jax.tree.map(lambda x: jnp.zeros((n_save, n, *x.shape[:-1]), x.dtype), state0)
+        states = jax.tree.map(lambda x: jnp.zeros((n_save, *x.shape), x.dtype), state0)
         peaks = (jnp.zeros((G,), jnp.int32), states)
     else:
         peaks = (jnp.zeros((G,), jnp.int32), no_peaks((n,), dtype))
@@ -587,31 +590,34 @@ def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
 
 
 def _lean_continuous(
-    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
+    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save, lanes
 ):
-    """The ensemble on `lean_loop`. After every accepted step: the divergence test (a
-    diverged case is frozen from then on) and the peak samples at the save times inside the
-    step, from diffrax's dense interpolation."""
+    """The ensemble on `lean_loop` (``lanes``: its work queue). After every accepted step: the
+    divergence test (a diverged case is frozen from then on) and the states at the save times
+    inside the step, from diffrax's dense interpolation (the peaks computed from them after
+    the loop)."""
     n = groups.count * groups.size
     state0, cases0 = _lean_start(part, fixed, n, dtype, n_save, groups.count, store=True)
     ts = _save_times(t0, t1, n_save, dtype) if n_save else None
     sample = _at_group_values(_peak_sample, part_g, fixed, groups)
-    diverged = _at_group_values(
-        lambda t, lp, inp, state: lp.diverged_at(t, state, inp), part_g, fixed, groups
-    )
 
-    def on_state(cases, t, y, args):
-        cases = _freeze(cases, t, y, diverged, groups)
+    def on_state(cases, t, y, args, inputs):
+        grp = Groups(t.shape[0], groups.size)  # the groups advanced (the lanes)
+        diverged = _at_group_values(
+            lambda t, lp, inp, state: lp.diverged_at(t, state, inp), inputs, fixed, grp
+        )
+        cases = _freeze(cases, t, y, diverged, grp)
         return cases, (cases.frozen, None)
 
-    def after_step(cases, step, args, keep, at_boundary):
+    def after_step(cases, step, args, keep, at_boundary, inputs):
+        grp = Groups(keep.shape[0], groups.size)
         if n_save:
             peaks = _store_samples(
                 cases.peaks,
                 ts,
                 jnp.where(keep, step.t1, -jnp.inf),
-                lambda t: step.evaluate(groups.per_case(t)),
-                groups,
+                lambda t: step.evaluate(grp.per_case(t)),
+                grp,
             )
             cases = _Cases(cases.frozen, cases.t_frozen, peaks)
         false = jnp.zeros_like(keep)
@@ -631,6 +637,7 @@ def _lean_continuous(
         extra=cases0,
         after_step=after_step,
         on_state=on_state,
+        lanes=lanes,
     )
     cases = out.extra
     peaks = _stored_peaks(cases.peaks, ts, cases, sample, groups) if n_save else None
@@ -688,7 +695,8 @@ def _lean_digital(
         groups,
     )
 
-    def after_step(extra, step, args, keep, at_boundary):
+    def after_step(extra, step, args, keep, at_boundary, inputs):
+        del inputs  # every group at once: part_g
         cases, k, buf, dctrl, q_prev, e_prev = extra
         held = args[1]
         on = groups.per_case(at_boundary)
@@ -732,7 +740,7 @@ def _lean_digital(
         stop = at_boundary & ~more & (e_end < t1)
         return extra, y, (cases.frozen, held), at_boundary, stop
 
-    def on_state(extra, t, y, args):
+    def on_state(extra, t, y, args, inputs):
         cases = _freeze(extra[0], t, y, diverged, groups)
         return (cases, *extra[1:]), (cases.frozen, args[1])
 
@@ -758,7 +766,7 @@ def _lean_digital(
         extra=extra0,
         after_step=after_step,
         on_state=on_state,
-        boundary=lambda extra: interval_end(extra[1]),
+        boundary=lambda extra, inputs: interval_end(extra[1]),
     )
     cases = out.extra[0]
     return _lean_result(out, cases, groups, dtype, cases.peaks[1] if n_save else None)

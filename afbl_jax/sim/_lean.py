@@ -21,23 +21,34 @@ with leading axis G).
 What a caller needs from the trajectory it computes inside the loop from every step
 (`Step`: the groups' intervals, both ends and diffrax's dense interpolation), with a hook:
 
-- ``after_step(extra, step, args, keep, at_boundary) -> (extra, y1, args, jumped, stop)`` runs
-  after every step; ``keep`` (G,): the group accepted its step (its outputs are used only
-  then: the hook must leave a group's part of ``extra`` unchanged where keep is False).
+- ``after_step(extra, step, args, keep, at_boundary, inputs) -> (extra, y1, args, jumped,
+  stop)`` runs after every step; ``keep`` (G,): the group accepted its step (its outputs are
+  used only then: the hook must leave a group's part of ``extra`` unchanged where keep is
+  False).
   Running reductions over the trajectory (peaks at sample times, integrals, soft maxima)
   update ``extra``; a hook may change the state and ``args`` (digital control: a sample
   instant's discrete update) and say so with ``jumped`` (G,) (the solver then re-evaluates
   its first stage, as after a jump time), or end a group's solve (``stop`` (G,)).
-- ``on_state(extra, t, y, args) -> (extra, args)`` runs on the groups' accepted times (G,)
-  and state: once on the initial state, then after every step on the new state (that of the
-  next step): per-case decisions the vector field reads from ``args`` (e.g. freezing the
-  cases that crossed a limit). It runs last in the step, on the selected state, so that XLA
-  keeps the step one sequence of work (computed beside the solver's stages, it ran on a
-  second thread and the hand-overs cost ~25 % more CPU time).
-- ``boundary(extra) -> t`` (G,): a group's steps never cross its t (the next sample instant;
-  +inf: none). ``at_boundary`` tells the hook which groups' accepted steps ended there, and
+- ``on_state(extra, t, y, args, inputs) -> (extra, args)`` runs on the groups' accepted
+  times (G,) and state: once on the initial state, then after every step on the new state
+  (that of the next step): per-case decisions the vector field reads from ``args`` (e.g.
+  freezing the cases that crossed a limit). It runs last in the step, on the selected
+  state, so that XLA keeps the step one sequence of work (computed beside the solver's
+  stages, it ran on a second thread and the hand-overs cost ~25 % more CPU time).
+- ``boundary(extra, inputs) -> t`` (G,): a group's steps never cross its t (the next sample
+  instant; +inf: none). ``at_boundary`` tells the hook which groups' accepted steps ended there, and
   the step budget ``max_steps`` counts each group's steps since its last boundary (with no
   boundary: all its steps).
+
+Every hook also gets ``inputs``: the leaves of ``inputs`` of the groups it is called on
+(leading axis G).
+
+Work queue (``lanes``): the loop advances ``lanes`` groups at a time (its working set). When a
+group is done, its lane takes the next group not yet started, so no lane waits for the
+slowest group of a fixed set. Each group takes exactly the steps it takes alone, and the hooks
+see the lanes' groups (G = ``lanes`` in the shapes above). A newly loaded group's first stage
+is evaluated afresh (as after a jump time). For this, the leaves of ``extra`` must be per group
+(shape (G,)) or per case with the case axis last (``(..., n)``); `lean_loop` checks this.
 
 Per group the loop does what `diffrax.diffeqsolve` does for one system (the same solver step,
 the same controller call, non-finite error estimates rejected, the last step clipped onto t1
@@ -50,6 +61,7 @@ checkpointed adjoint).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -128,8 +140,8 @@ class _Carry(eqx.Module):
     extra: Any
 
 
-def _no_hook(extra, step, args, keep, at_boundary):
-    del step, at_boundary
+def _no_hook(extra, step, args, keep, at_boundary, inputs):
+    del step, at_boundary, inputs
     false = jnp.zeros_like(keep)
     return extra, None, args, false, false
 
@@ -144,8 +156,8 @@ def _where(pred, a, b):
     return jax.vmap(diffrax.RESULTS.where)(pred, a, b)
 
 
-def _no_check(extra, t, y, args):
-    del t, y
+def _no_check(extra, t, y, args, inputs):
+    del t, y, inputs
     return extra, args
 
 
@@ -170,6 +182,73 @@ def ensemble_field(group_field: Callable, inputs, groups: Groups) -> Callable:
     return field
 
 
+def _extra_kinds(extra, G: int, n: int):
+    """Per leaf of ``extra``: True per group (shape (G,)), False per case (last axis n)."""
+
+    def kind(x):
+        shape = jnp.shape(x)
+        if len(shape) == 1 and shape[0] == G:
+            return True
+        if len(shape) >= 1 and shape[-1] == n:
+            return False
+        raise ValueError(
+            f"lean_loop: with lanes, every leaf of extra must be per group (shape ({G},)) or "
+            f"per case (case axis last, length {n}); got a leaf of shape {shape}."
+        )
+
+    return jax.tree.map(kind, extra)
+
+
+def _take(tree, kinds, i, g: int):
+    """Group i's slice: leaves per group (``kinds`` True: leading axis) -> x[i]; per case
+    (False: case axis last) -> (..., g)."""
+
+    def one(x, per_group):
+        if per_group:
+            return jax.lax.dynamic_index_in_dim(x, i, 0, keepdims=False)
+        return jax.lax.dynamic_slice_in_dim(x, i * g, g, axis=x.ndim - 1)
+
+    return jax.tree.map(one, tree, kinds)
+
+
+def _put(tree, kinds, i, value, g: int):
+    """``tree`` with group i's slice (`_take`) set to ``value``."""
+
+    def one(x, per_group, v):
+        if per_group:
+            return jax.lax.dynamic_update_index_in_dim(x, v, i, 0)
+        return jax.lax.dynamic_update_slice_in_dim(x, v, i * g, axis=x.ndim - 1)
+
+    return jax.tree.map(one, tree, kinds, value)
+
+
+def _first(tree, kinds, count: int, g: int):
+    """The slices of the first ``count`` groups."""
+    return jax.tree.map(lambda x, k: x[:count] if k else x[..., : count * g], tree, kinds)
+
+
+def _all(tree, value: bool):
+    return jax.tree.map(lambda _: value, tree)
+
+
+def _no_solver_state(c: _Carry) -> _Carry:
+    return dataclasses.replace(c, solver_state=None)
+
+
+class _Queue(eqx.Module):
+    """The work queue: the lanes' carry, inputs and step-size controllers (array leaves), the
+    pool group each lane holds, which lanes still hold a group, the next group to start, and
+    the pool's carries (each group's initial carry until it starts, its final one once done)."""
+
+    lanes: _Carry
+    inputs: Any
+    controllers: Any
+    group: Array
+    active: Array
+    next: Array
+    pool: _Carry
+
+
 def lean_loop(
     group_field: Callable,
     inputs,
@@ -186,20 +265,23 @@ def lean_loop(
     after_step: Callable | None = None,
     on_state: Callable | None = None,
     boundary: Callable | None = None,
+    lanes: int | None = None,
 ) -> LoopOutcome:
     """Integrate the ensemble from t0 to t1 (module docstring). ``controllers``: one diffrax
     step-size controller per group (array leaves with leading axis G, e.g. built with
     `equinox.filter_vmap`); the first step of each group comes from its controller's
     ``init`` (diffrax's initial-step heuristic for a PID controller). ``after_step`` None: no
-    hook; its ``y1`` output None: the state is unchanged."""
+    hook; its ``y1`` output None: the state is unchanged. ``lanes``: groups advanced at a time
+    (a work queue, module docstring); None or >= G: all groups at once."""
     after_step = _no_hook if after_step is None else after_step
     on_state = _no_check if on_state is None else on_state
-    G = groups.count
+    G, g = groups.count, groups.size
+    if lanes is not None and (isinstance(lanes, bool) or int(lanes) < 1):
+        raise ValueError(f"lean_loop: lanes must be an integer >= 1 or None, got {lanes!r}.")
+    L = G if lanes is None else min(int(lanes), G)
     t0 = jnp.asarray(t0)
     t1 = jnp.asarray(t1, t0.dtype)
-
-    term = diffrax.ODETerm(ensemble_field(group_field, inputs, groups))
-    order = solver.error_order(term)
+    order = solver.error_order(diffrax.ODETerm(ensemble_field(group_field, inputs, groups)))
 
     def init_group(controller, y, a, inp):
         term_g = diffrax.ODETerm(lambda t, yy, aa: group_field(t, yy, aa, inp))
@@ -214,23 +296,23 @@ def lean_loop(
         lambda x: x if eqx.is_array(x) else jnp.full((G,), x), controller_state
     )
     if boundary is not None:
-        t_next = jnp.minimum(t_next, boundary(extra))
-    solver_state = solver.init(
-        term, groups.per_case(jnp.full((G,), t0)), groups.per_case(t_next), y0, args
-    )
+        t_next = jnp.minimum(t_next, boundary(extra, inputs))
     # as diffeqsolve: a step ending within 100 ulps of t1 is extended onto t1
     t1_floor = _prevbefore(t1, 100)
     zeros = jnp.zeros((G,), jnp.int32)
     false = jnp.zeros((G,), bool)
-    extra, args = on_state(extra, jnp.full((G,), t0), y0, args)
-    carry = _Carry(
+    extra, args = on_state(extra, jnp.full((G,), t0), y0, args, inputs)
+    pool = _Carry(
         jnp.full((G,), t0),
         t_next,
         y0,
         args,
-        solver_state,
+        None,
         controller_state,
-        false,
+        # a group's first stage is evaluated until it accepts its first step (the solver's
+        # own first-step flag is one for all groups: a group whose first step was rejected
+        # while another's was accepted would go on from the placeholder zero stage)
+        jnp.ones((G,), bool),
         zeros,
         zeros,
         zeros,
@@ -246,39 +328,51 @@ def lean_loop(
     def adapt(controller, ta, tb, y, y1, err, state):
         return controller.adapt_step_size(ta, tb, y, y1, None, err, order, state)
 
-    def body(c: _Carry) -> _Carry:
+    def solver_init(c: _Carry, inp, grp: Groups) -> _Carry:
+        term = diffrax.ODETerm(ensemble_field(group_field, inp, grp))
+        state = solver.init(term, grp.per_case(c.t), grp.per_case(c.t_next), c.y, c.args)
+        return dataclasses.replace(c, solver_state=state)
+
+    def advance(c: _Carry, inp, ctrl, grp: Groups) -> _Carry:
+        """One step of the groups ``grp`` (inputs ``inp``, step-size controllers ``ctrl``)."""
+        term = diffrax.ODETerm(ensemble_field(group_field, inp, grp))
         live = running(c)
+        no = jnp.zeros_like(live)
         extra, args = c.extra, c.args
-        t_case, t_next_case = groups.per_case(c.t), groups.per_case(c.t_next)
+        t_case, t_next_case = grp.per_case(c.t), grp.per_case(c.t_next)
         y1, y_error, dense, solver_state, solver_result = solver.step(
-            term, t_case, t_next_case, c.y, args, c.solver_state, jnp.any(c.made_jump)
+            term, t_case, t_next_case, c.y, args, c.solver_state, jnp.any(c.made_jump & live)
         )
         y_error = jax.tree.map(lambda e: jnp.where(jnp.isnan(e), jnp.inf, e), y_error)
         keep, t_new, t_next, jump, controller_state, controller_result = eqx.filter_vmap(
             adapt, in_axes=(eqx.if_array(0), 0, 0, -2, -2, -2, 0)
         )(
-            controllers,
+            ctrl,
             c.t,
             c.t_next,
-            groups.view(c.y),
-            groups.view(y1),
-            groups.view(y_error),
+            grp.view(c.y),
+            grp.view(y1),
+            grp.view(y_error),
             c.controller_state,
         )
         keep = keep & live
         t_new = jnp.where(live, jnp.minimum(t_new, t1), c.t)
         clip = t_next > t1_floor
         t_next = jnp.where(clip, jnp.where(keep, t1, t_new + 0.5 * (t1 - t_new)), t_next)
-        at_boundary = keep & (false if boundary is None else t_new >= boundary(c.extra))
+        at_boundary = keep & (no if boundary is None else t_new >= boundary(c.extra, inp))
         step = Step(
             c.t, c.t_next, c.y, y1, solver.interpolation_cls(t0=t_case, t1=t_next_case, **dense)
         )
-        extra, y_hook, args_out, jumped, stop = after_step(extra, step, args, keep, at_boundary)
+        extra, y_hook, args_out, jumped, stop = after_step(
+            extra, step, args, keep, at_boundary, inp
+        )
         y1 = y1 if y_hook is None else y_hook
         if boundary is not None:
-            t_next = jnp.maximum(jnp.minimum(t_next, boundary(extra)), jnp.nextafter(t_new, t1))
+            t_next = jnp.maximum(
+                jnp.minimum(t_next, boundary(extra, inp)), jnp.nextafter(t_new, t1)
+            )
         t_next = jnp.where(live, t_next, c.t_next)
-        keep_case = groups.per_case(keep)
+        keep_case = grp.per_case(keep)
 
         def pick(a, b):
             def one(x, z):
@@ -286,12 +380,12 @@ def lean_loop(
 
             return jax.tree.map(one, a, b)
 
-        ok = _results(diffrax.RESULTS.successful, G)
-        result = _where(keep, _results(solver_result, G), ok)
+        ok = _results(diffrax.RESULTS.successful, grp.count)
+        result = _where(keep, _results(solver_result, grp.count), ok)
         result = _where(result == diffrax.RESULTS.successful, controller_result, result)
         result = _where(live, result, c.result)
         y_new = pick(y1, c.y)
-        extra, args_new = on_state(extra, t_new, y_new, pick(args_out, args))
+        extra, args_new = on_state(extra, t_new, y_new, pick(args_out, args), inp)
         return _Carry(
             t_new,
             t_next,
@@ -310,7 +404,14 @@ def lean_loop(
             extra,
         )
 
-    c = jax.lax.while_loop(lambda c: jnp.any(running(c)), body, carry)
+    if L == G:
+        c = jax.lax.while_loop(
+            lambda c: jnp.any(running(c)),
+            lambda c: advance(c, inputs, controllers, groups),
+            solver_init(pool, inputs, groups),
+        )
+    else:
+        c = _run_queue(pool, inputs, controllers, G, L, g, running, solver_init, advance)
     # stopped before t1 with no failure: a step budget (or the hook's) ran out
     result = _where(
         (c.result == diffrax.RESULTS.successful) & (c.t < t1),
@@ -318,3 +419,94 @@ def lean_loop(
         c.result,
     )
     return LoopOutcome(c.t, c.y, c.args, c.extra, result, c.num_steps, c.num_rejected)
+
+
+def _run_queue(pool: _Carry, inputs, controllers, G, L, g, running, solver_init, advance):
+    """`lean_loop`'s work queue: L lanes over the G groups of ``pool``; returns the pool with
+    every group's final carry."""
+    n = G * g
+    kinds = _Carry(
+        True,
+        True,
+        _all(pool.y, False),
+        _all(pool.args, False),
+        None,
+        _all(pool.controller_state, True),
+        True,
+        True,
+        True,
+        True,
+        _all(pool.result, True),
+        True,
+        _extra_kinds(pool.extra, G, n),
+    )
+    inputs_arr, inputs_static = eqx.partition(inputs, eqx.is_array)
+    ctrl_arr, ctrl_static = eqx.partition(controllers, eqx.is_array)
+    in_kinds, ctrl_kinds = _all(inputs_arr, True), _all(ctrl_arr, True)
+    lane_groups = Groups(L, g)
+
+    def refill(q: _Queue) -> _Queue:
+        """Every lane whose group is done: its carry to the pool, the next group into it."""
+
+        def need(q):
+            return q.active & ~running(q.lanes)
+
+        def one(q: _Queue) -> _Queue:
+            lane = jnp.argmax(need(q))
+            done = _take(_no_solver_state(q.lanes), kinds, lane, g)
+            pool = _put(q.pool, kinds, q.group[lane], done, g)
+            more = q.next < G
+            nxt = jnp.minimum(q.next, G - 1)
+
+            def load(tree, pool_tree, k):
+                new = _take(pool_tree, k, nxt, g)
+                old = _take(tree, k, lane, g)
+                chosen = jax.tree.map(lambda a, b: jnp.where(more, a, b), new, old)
+                return _put(tree, k, lane, chosen, g)
+
+            lanes = load(_no_solver_state(q.lanes), pool, kinds)
+            # a new group's first stage is evaluated afresh; a lane left empty never asks
+            lanes = dataclasses.replace(
+                lanes,
+                solver_state=q.lanes.solver_state,
+                made_jump=lanes.made_jump.at[lane].set(more),
+            )
+            return _Queue(
+                lanes,
+                load(q.inputs, inputs_arr, in_kinds),
+                load(q.controllers, ctrl_arr, ctrl_kinds),
+                q.group.at[lane].set(jnp.where(more, nxt, q.group[lane])),
+                q.active.at[lane].set(more),
+                q.next + more.astype(q.next.dtype),
+                pool,
+            )
+
+        def all_lanes(q):
+            return jax.lax.while_loop(lambda q: jnp.any(need(q)), one, q)
+
+        return jax.lax.cond(jnp.any(need(q)), all_lanes, lambda q: q, q)
+
+    def step(q: _Queue) -> _Queue:
+        lanes = advance(
+            q.lanes,
+            eqx.combine(q.inputs, inputs_static),
+            eqx.combine(q.controllers, ctrl_static),
+            lane_groups,
+        )
+        return refill(dataclasses.replace(q, lanes=lanes))
+
+    first_inputs = _first(inputs_arr, in_kinds, L, g)
+    lanes0 = solver_init(
+        _first(pool, kinds, L, g), eqx.combine(first_inputs, inputs_static), lane_groups
+    )
+    q = _Queue(
+        lanes0,
+        first_inputs,
+        _first(ctrl_arr, ctrl_kinds, L, g),
+        jnp.arange(L, dtype=jnp.int32),
+        jnp.ones((L,), bool),
+        jnp.asarray(L, jnp.int32),
+        pool,
+    )
+    q = jax.lax.while_loop(lambda q: jnp.any(q.active), step, refill(q))
+    return q.pool

@@ -23,7 +23,10 @@ Strategies (rows of bench.json):
   ``ensemble_f32``: float32, groups of 4 cases, 128 cases per CPU device at a time (all
   cases at once on a GPU), 401 saved samples for the peak metrics, rtol 3e-6, atol 3e-7);
   ``montecarlo_default_1dev``: the same on one device (one core), for a per-core comparison
-  with the single-core scipy loop.
+  with the single-core scipy loop. With more than 128 cases per CPU device, a device's 128-case
+  chunks are the lanes of the lean loop's work queue (``simulate_batch(work_queue=True)``);
+  ``montecarlo_default_no_queue``: the same with the chunks one after the other, each waiting
+  for its slowest group (the baseline of the work queue, measured in the same run).
 - ``montecarlo_default_unmodeled``: the same Monte-Carlo default on a realistic vehicle: full
   rigid-body plant, first-order motor lag tau_m = 30 ms, digital control at 250 Hz with a
   one-sample measurement delay (noise off). Its accuracy is measured against an x64 Dopri8
@@ -77,7 +80,9 @@ def realistic_unmodeled(duration: float = 20.0) -> UnmodeledDynamics:
     return UnmodeledDynamics.make(duration=duration, **REALISTIC_VEHICLE)
 
 
-def _mc_default(one_device: bool, unmodeled: bool = False, integrator: str = "lean") -> dict:
+def _mc_default(
+    one_device: bool, unmodeled: bool = False, integrator: str = "lean", work_queue: bool = True
+) -> dict:
     from .montecarlo import BATCH_SETTINGS, DEFAULT_STRATEGY, STRATEGY_TOLERANCES, SolverSettings
 
     rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
@@ -90,6 +95,7 @@ def _mc_default(one_device: bool, unmodeled: bool = False, integrator: str = "le
         "always": True,
         "unmodeled": unmodeled,
         "integrator": integrator,
+        "work_queue": work_queue,
         "platform_chunk": True,  # chunked on CPU devices only (`device_chunk`)
     }
 
@@ -108,6 +114,7 @@ BATCH_STRATEGIES = {
     },
     "montecarlo_default": _mc_default(False),
     "montecarlo_default_1dev": _mc_default(True),
+    "montecarlo_default_no_queue": _mc_default(False, work_queue=False),
     "montecarlo_default_diffeqsolve": _mc_default(False, integrator="diffeqsolve"),
     "montecarlo_default_unmodeled": _mc_default(False, unmodeled=True),
     "montecarlo_default_unmodeled_diffeqsolve": _mc_default(
@@ -361,6 +368,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
                 devices=devices,
                 unmodeled=unmodeled,
                 integrator=cfg.get("integrator", "lean"),
+                work_queue=cfg.get("work_queue", True),
             )
         )
 
@@ -384,6 +392,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
         "devices": len(devices),
         "unmodeled": REALISTIC_VEHICLE if unmodeled else None,
         "integrator": cfg.get("integrator", "lean") if cfg["strategy"] == "ensemble" else None,
+        "work_queue": cfg.get("work_queue", True),
         "sims_per_s": n / run,
         "seconds": run,
         "compile_s": max(first - run, 0.0),
