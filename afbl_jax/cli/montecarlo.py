@@ -45,7 +45,7 @@ def register(sub) -> None:
         "--chunk-size",
         type=int,
         default=None,
-        help="cases per compiled chunk and per chunk file (default: 256 on CPU devices, 16384 "
+        help="cases per compiled chunk and per chunk file (default: 1024 on CPU devices, 16384 "
         "on a GPU)",
     )
     p.add_argument(

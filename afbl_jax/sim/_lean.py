@@ -43,18 +43,21 @@ What a caller needs from the trajectory it computes inside the loop from every s
 Every hook also gets ``inputs``: the leaves of ``inputs`` of the groups it is called on
 (leading axis G).
 
-Work queue (``lanes``): the loop advances ``lanes`` groups at a time (its working set). When a
-group is done, its lane takes the next group not yet started, so no lane waits for the
-slowest group of a fixed set. Each group takes exactly the steps it takes alone, and the hooks
-see the lanes' groups (G = ``lanes`` in the shapes above). A newly loaded group's first stage
-is evaluated afresh (as after a jump time). For this, the leaves of ``extra`` must be per group
+Work queue (``lanes``, dividing G): the loop advances ``lanes`` groups at a time (its working
+set). When a group is done, its lane takes the next group not yet started, so no lane waits
+for the slowest group of a fixed set. The hooks see the lanes' groups (G = ``lanes`` in the
+shapes above). A newly loaded group's first stage is evaluated afresh (as after a jump time),
+and the initial-step heuristic runs on blocks of ``lanes`` groups, so a group's arithmetic is
+the same as without the queue (bitwise, measured). The leaves of ``extra`` must be per group
 (shape (G,)) or per case with the case axis last (``(..., n)``); `lean_loop` checks this.
 
 Per group the loop does what `diffrax.diffeqsolve` does for one system (the same solver step,
 the same controller call, non-finite error estimates rejected, the last step clipped onto t1
-within 100 ulps), so both take the same steps. The first stage is re-evaluated for every case
-when any group made a jump (diffrax's solver step takes one flag for the whole state; this is
-what `jax.vmap` over groups did too). The loop is a ``while_loop``: forward-mode
+within 100 ulps), so both take the same steps. The first stage is evaluated afresh per group:
+until its first step is accepted and after a jump (diffrax's solver step takes one flag for the
+whole state, so the loop evaluates the vector field itself where any group needs it and hands
+the solver each group's own first stage): a group's steps do not depend on the groups that
+share the loop with it. The loop is a ``while_loop``: forward-mode
 differentiable, not reverse-mode (`jax.grad` needs `diffrax.diffeqsolve` and its
 checkpointed adjoint).
 """
@@ -231,6 +234,43 @@ def _all(tree, value: bool):
     return jax.tree.map(lambda _: value, tree)
 
 
+def _fsal(solver, solver_state) -> bool:
+    """Whether ``solver_state`` is an explicit Runge-Kutta method's FSAL state: (first-step
+    flag, the vector field at the step's start)."""
+    return isinstance(solver, diffrax.AbstractERK) and isinstance(solver_state, tuple)
+
+
+def _by_blocks(fn, controllers, y0, args, inputs, G: int, L: int, g: int):
+    """``fn(controllers, y (..., L, g), args (..., L, g), inputs)`` on consecutive blocks of L
+    of the G groups (`jax.lax.map`), outputs per group (leading axis G)."""
+    B = G // L
+    ctrl_arr, ctrl_static = eqx.partition(controllers, eqx.is_array)
+
+    def per_group(x):
+        return x.reshape(B, L, *x.shape[1:])
+
+    def per_case(x):
+        return jnp.moveaxis(x.reshape(*x.shape[:-1], B, L, g), -3, 0)
+
+    def one(xs):
+        c, y, a, inp = xs
+        return fn(eqx.combine(c, ctrl_static), y, a, inp)
+
+    out = jax.lax.map(
+        one,
+        (
+            jax.tree.map(per_group, ctrl_arr),
+            jax.tree.map(per_case, y0),
+            jax.tree.map(per_case, args),
+            jax.tree.map(per_group, inputs),
+        ),
+    )
+    # a per-block constant (a Python constant in the controller's state) -> per group
+    return jax.tree.map(
+        lambda x: x.reshape(G, *x.shape[2:]) if x.ndim >= 2 else jnp.repeat(x, L), out
+    )
+
+
 def _no_solver_state(c: _Carry) -> _Carry:
     return dataclasses.replace(c, solver_state=None)
 
@@ -238,7 +278,8 @@ def _no_solver_state(c: _Carry) -> _Carry:
 class _Queue(eqx.Module):
     """The work queue: the lanes' carry, inputs and step-size controllers (array leaves), the
     pool group each lane holds, which lanes still hold a group, the next group to start, and
-    the pool's carries (each group's initial carry until it starts, its final one once done)."""
+    the pool's carries (each group's initial carry until it starts, its final one once
+    done)."""
 
     lanes: _Carry
     inputs: Any
@@ -279,6 +320,8 @@ def lean_loop(
     if lanes is not None and (isinstance(lanes, bool) or int(lanes) < 1):
         raise ValueError(f"lean_loop: lanes must be an integer >= 1 or None, got {lanes!r}.")
     L = G if lanes is None else min(int(lanes), G)
+    if G % L:
+        raise ValueError(f"lean_loop: lanes ({L}) must divide the number of groups ({G}).")
     t0 = jnp.asarray(t0)
     t1 = jnp.asarray(t1, t0.dtype)
     order = solver.error_order(diffrax.ODETerm(ensemble_field(group_field, inputs, groups)))
@@ -287,9 +330,13 @@ def lean_loop(
         term_g = diffrax.ODETerm(lambda t, yy, aa: group_field(t, yy, aa, inp))
         return controller.init(term_g, t0, t1, y, None, a, solver.func, order)
 
-    t_next, controller_state = eqx.filter_vmap(init_group, in_axes=(eqx.if_array(0), -2, -2, 0))(
-        controllers, groups.view(y0), groups.view(args), inputs
-    )
+    init_all = eqx.filter_vmap(init_group, in_axes=(eqx.if_array(0), -2, -2, 0))
+    if L == G:
+        t_next, controller_state = init_all(controllers, groups.view(y0), groups.view(args), inputs)
+    else:
+        # L groups at a time, as the loop steps them: XLA's rounding of the initial-step
+        # heuristic depends on the array size, and a group's result must not depend on the pool
+        t_next, controller_state = _by_blocks(init_all, controllers, y0, args, inputs, G, L, g)
     t_next = jnp.minimum(t_next, t1)
     # every leaf per group (a Python constant in the controller's state, e.g. a flag, too)
     controller_state = jax.tree.map(
@@ -309,9 +356,7 @@ def lean_loop(
         args,
         None,
         controller_state,
-        # a group's first stage is evaluated until it accepts its first step (the solver's
-        # own first-step flag is one for all groups: a group whose first step was rejected
-        # while another's was accepted would go on from the placeholder zero stage)
+        # a group's first stage is evaluated afresh until it accepts its first step
         jnp.ones((G,), bool),
         zeros,
         zeros,
@@ -340,8 +385,21 @@ def lean_loop(
         no = jnp.zeros_like(live)
         extra, args = c.extra, c.args
         t_case, t_next_case = grp.per_case(c.t), grp.per_case(c.t_next)
+        solver_state, made_jump = c.solver_state, jnp.any(c.made_jump & live)
+        if _fsal(solver, solver_state):
+            # the first stage afresh for the groups that need it only (the solver's flag is one
+            # for all): a group's steps do not depend on which groups share the loop with it
+            first_step, f0 = solver_state
+            fresh = grp.per_case(c.made_jump & live)
+
+            def first_stage(f0):
+                f = term.vf(t_case, c.y, args)
+                return jax.tree.map(lambda a, b: jnp.where(fresh, a, b), f, f0)
+
+            f0 = jax.lax.cond(made_jump, first_stage, lambda f0: f0, f0)
+            solver_state, made_jump = (jnp.zeros_like(first_step), f0), False
         y1, y_error, dense, solver_state, solver_result = solver.step(
-            term, t_case, t_next_case, c.y, args, c.solver_state, jnp.any(c.made_jump & live)
+            term, t_case, t_next_case, c.y, args, solver_state, made_jump
         )
         y_error = jax.tree.map(lambda e: jnp.where(jnp.isnan(e), jnp.inf, e), y_error)
         keep, t_new, t_next, jump, controller_state, controller_result = eqx.filter_vmap(
@@ -455,8 +513,9 @@ def _run_queue(pool: _Carry, inputs, controllers, G, L, g, running, solver_init,
             lane = jnp.argmax(need(q))
             done = _take(_no_solver_state(q.lanes), kinds, lane, g)
             pool = _put(q.pool, kinds, q.group[lane], done, g)
-            more = q.next < G
-            nxt = jnp.minimum(q.next, G - 1)
+            nxt = q.next
+            more = nxt < G
+            nxt = jnp.minimum(nxt, G - 1)
 
             def load(tree, pool_tree, k):
                 new = _take(pool_tree, k, nxt, g)

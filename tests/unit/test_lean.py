@@ -273,7 +273,7 @@ def mc_norm(y):
 
 
 def test_lean_loop_work_queue_gives_every_group_its_own_steps():
-    """Lanes 1 and 3 (a finished group's lane takes the next group) against all 4 groups at
+    """Lanes 1 and 2 (a finished group's lane takes the next group) against all 4 groups at
     once: every group takes the same steps (exactly), with the same end state and hook results
     (to round-off: other vector widths); the exact solution checks the state. Before a group's
     first step is accepted its first stage is evaluated afresh: a group whose first step was
@@ -284,7 +284,7 @@ def test_lean_loop_work_queue_gives_every_group_its_own_steps():
     assert len(set(steps.tolist())) >= 3  # the groups differ, so the queue reorders work
     y_exact = np.linspace(1.0, 2.0, 8) * np.exp(-np.array([1, 2, 40, 50, 3, 1, 90, 5.0]))
     np.testing.assert_allclose(ref.y, y_exact, rtol=1e-6, atol=1e-9)
-    for lanes in (1, 3):
+    for lanes in (1, 2):
         out = _decay_loop(lanes)
         np.testing.assert_array_equal(out.num_steps, ref.num_steps)
         np.testing.assert_array_equal(out.extra[0], steps - np.asarray(ref.num_rejected_steps))
@@ -293,13 +293,15 @@ def test_lean_loop_work_queue_gives_every_group_its_own_steps():
         np.testing.assert_array_equal(out.t, np.ones(4))
     with pytest.raises(ValueError, match="lanes must be an integer >= 1"):
         _decay_loop(0)
+    with pytest.raises(ValueError, match=r"lanes \(3\) must divide the number of groups \(4\)"):
+        _decay_loop(3)
     with pytest.raises(ValueError, match=r"per group \(shape \(4,\)\) or per case"):
         _decay_loop(2, extra=(jnp.zeros(4, jnp.int32), jnp.zeros((8, 3))))
 
 
 def test_lean_work_queue_equals_chunks_one_after_the_other(mc_cases):
     """Monte-Carlo cases with divergent members, groups of 2, chunks of 4 (two lanes over four
-    groups): the work queue against the chunks one after the other, case by case."""
+    groups): the work queue against the chunks one after the other, case by case and bitwise."""
     batch, scenarios = mc_cases
 
     def run(work_queue):
@@ -319,10 +321,7 @@ def test_lean_work_queue_equals_chunks_one_after_the_other(mc_cases):
         )
 
     queued, chunked = run(True), run(False)
-    np.testing.assert_array_equal(queued.status, chunked.status)
     assert np.sum(np.asarray(queued.status) == A.sim.STATUS_DIVERGED) == 2
-    for k in ("ise_attitude", "ise_altitude", "effort", "t_final", *PEAKS):
-        np.testing.assert_allclose(
-            getattr(queued, k), getattr(chunked, k), rtol=1e-9, atol=1e-14, err_msg=k
-        )
-    np.testing.assert_allclose(queued.num_steps, chunked.num_steps, atol=1)
+    # bitwise: a group's arithmetic does not depend on the groups beside it
+    for k in ("status", "num_steps", "ise_attitude", "ise_altitude", "effort", "t_final", *PEAKS):
+        np.testing.assert_array_equal(getattr(queued, k), getattr(chunked, k), err_msg=k)

@@ -628,7 +628,7 @@ def test_chunking_follows_the_platform():
     cpu, gpu = (Device("cpu"),), (Device("gpu"),)
     assert mc.device_chunk(mc.INNER_CHUNK, cpu) == mc.INNER_CHUNK
     assert mc.device_chunk(mc.INNER_CHUNK, gpu) is None
-    assert mc.default_chunk_size(cpu) == mc.CPU_CHUNK_SIZE == 256
+    assert mc.default_chunk_size(cpu) == mc.CPU_CHUNK_SIZE == 1024
     assert mc.default_chunk_size(gpu) == mc.ACCELERATOR_CHUNK_SIZE
     here = mc.CPU_CHUNK_SIZE if jax.local_devices()[0].platform == "cpu" else None
     assert mc.default_chunk_size() == (here or mc.ACCELERATOR_CHUNK_SIZE)

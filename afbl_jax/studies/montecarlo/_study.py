@@ -26,7 +26,7 @@ class StudyConfig:
         out: output folder (created; running the same study there again resumes).
         n_cases, seed: the cases (case i from ``fold_in(PRNGKey(seed), i)``).
         distribution: the case distribution (default `DEFAULT_DISTRIBUTION`).
-        chunk_size: cases per compiled chunk and per chunk file (None: 256 on CPU devices,
+        chunk_size: cases per compiled chunk and per chunk file (None: 1024 on CPU devices,
             16384 on an accelerator).
         strategy: how a chunk is solved (None/"auto": `DEFAULT_STRATEGY`).
         settings: solver settings (None: the strategy's defaults).
