@@ -440,8 +440,8 @@ def simulate_batch(
         work_queue: ``"lean"`` with ``group_size``, continuous control and more than one chunk
             per device: a chunk's groups are the lanes of a work queue over the device's
             cases (up to `QUEUE_POOL_CHUNKS` chunks per queue): a group that is done hands its
-            lane to the next group instead of the chunk waiting for its slowest group. Every
-            group takes the steps it takes alone. False: the chunks one after the other.
+            lane to the next group instead of the chunk waiting for its slowest group. The
+            results are bitwise those of the chunks one after the other (False).
 
     Never raises for failed or diverged cases; check ``status``.
     """

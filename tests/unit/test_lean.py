@@ -90,6 +90,23 @@ def test_lean_agrees_with_diffeqsolve_on_canonical_cases():
     assert np.ptp(np.asarray(lean.ise_altitude)) > 1e-3 * np.max(np.asarray(lean.ise_altitude))
 
 
+def _mc_run(mc_cases, controller="afbl", **kw):
+    """`simulate_batch` on the Monte-Carlo cases (their vehicles, models and aerodynamics),
+    41 saved samples, the test tolerances; ``kw``: the other settings."""
+    batch, scenarios = mc_cases
+    return A.simulate_batch(
+        A.make_controller(controller),
+        scenarios,
+        batch.vehicle,
+        batch.model,
+        aerodynamics=batch.aerodynamics,
+        rtol=RTOL,
+        atol=ATOL,
+        n_save=41,
+        **kw,
+    )
+
+
 @pytest.fixture(scope="module")
 def mc_cases():
     batch = mc.sample_cases(mc.Distribution.from_dict(SHORT), N, 3)
@@ -99,34 +116,11 @@ def mc_cases():
 
 @pytest.fixture(scope="module")
 def mc_lean(mc_cases):
-    batch, scenarios = mc_cases
-    return A.simulate_batch(
-        A.make_controller("afbl"),
-        scenarios,
-        batch.vehicle,
-        batch.model,
-        aerodynamics=batch.aerodynamics,
-        rtol=RTOL,
-        atol=ATOL,
-        n_save=41,
-        group_size=GROUP,
-    )
+    return _mc_run(mc_cases, group_size=GROUP)
 
 
 def test_lean_agrees_with_diffeqsolve_on_montecarlo_cases_with_divergence(mc_cases, mc_lean):
-    batch, scenarios = mc_cases
-    ref = A.simulate_batch(
-        A.make_controller("afbl"),
-        scenarios,
-        batch.vehicle,
-        batch.model,
-        aerodynamics=batch.aerodynamics,
-        rtol=RTOL,
-        atol=ATOL,
-        n_save=41,
-        group_size=GROUP,
-        integrator="diffeqsolve",
-    )
+    ref = _mc_run(mc_cases, group_size=GROUP, integrator="diffeqsolve")
     lean = mc_lean
     status = np.asarray(lean.status)
     assert list(np.nonzero(status == A.sim.STATUS_DIVERGED)[0]) == [1, 6]
@@ -139,18 +133,7 @@ def test_lean_chunks_reuse_one_program_and_equal_unchunked(mc_cases, mc_lean):
     batch, scenarios = mc_cases
 
     def run(sc):
-        return A.simulate_batch(
-            A.make_controller("afbl"),
-            sc,
-            batch.vehicle,
-            batch.model,
-            aerodynamics=batch.aerodynamics,
-            rtol=RTOL,
-            atol=ATOL,
-            n_save=41,
-            group_size=GROUP,
-            chunk_size=GROUP,
-        )
+        return _mc_run((batch, sc), group_size=GROUP, chunk_size=GROUP)
 
     chunked = run(scenarios)
     for k in ("ise_attitude", "ise_altitude", "t_final", *PEAKS):
@@ -302,23 +285,11 @@ def test_lean_loop_work_queue_gives_every_group_its_own_steps():
 def test_lean_work_queue_equals_chunks_one_after_the_other(mc_cases):
     """Monte-Carlo cases with divergent members, groups of 2, chunks of 4 (two lanes over four
     groups): the work queue against the chunks one after the other, case by case and bitwise."""
-    batch, scenarios = mc_cases
 
     def run(work_queue):
-        return A.simulate_batch(
-            A.make_controller("fbl"),
-            scenarios,
-            batch.vehicle,
-            batch.model,
-            aerodynamics=batch.aerodynamics,
-            rtol=RTOL,
-            atol=ATOL,
-            n_save=41,
-            group_size=2,
-            chunk_size=4,
-            devices=jax.local_devices()[:1],
-            work_queue=work_queue,
-        )
+        one_device = jax.local_devices()[:1]
+        kw = {"group_size": 2, "chunk_size": 4, "devices": one_device, "work_queue": work_queue}
+        return _mc_run(mc_cases, "fbl", **kw)
 
     queued, chunked = run(True), run(False)
     assert np.sum(np.asarray(queued.status) == A.sim.STATUS_DIVERGED) == 2
