@@ -156,8 +156,11 @@ def sample_peaks(
     speed / omega_max [-]."""
     err = jnp.abs(error)
     w_cmd = rotor_speeds_sq_from_inputs(model, u_command)
-    sat = jnp.sqrt(jnp.maximum(w_cmd, 0.0)) / vehicle.omega_max
-    return jnp.stack([jnp.max(err[:3]), err[3], jnp.max(sat)])
+    w_max = jnp.maximum(jnp.maximum(w_cmd[0], w_cmd[1]), jnp.maximum(w_cmd[2], w_cmd[3]))
+    sat = jnp.sqrt(jnp.maximum(w_max, 0.0)) / vehicle.omega_max
+    # maxima over 3 and 4 entries as elementwise maxima: no reduction, which XLA's CPU backend
+    # otherwise emits as one small reduction per case and sample
+    return jnp.stack([jnp.maximum(jnp.maximum(err[0], err[1]), err[2]), err[3], sat])
 
 
 def peaks_over_samples(ts, samples, t_final) -> Array:

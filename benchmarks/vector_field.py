@@ -5,8 +5,10 @@ and times the ensemble vector field exactly as the Monte-Carlo default evaluates
 (`afbl_jax.ensemble_vector_field`: float32, groups of 4 cases, case axis last) in a compiled
 loop of ``--evals`` evaluations, per case and evaluation. Variants switch parts off or make
 them shared by all cases (a leaf equal in every case is evaluated once per group), so the
-difference to the default says what that part costs. Variants are timed interleaved, best of
-``--repeats``, in one process; run pinned to one core for stable numbers::
+difference to the default says what that part costs. The loop compiles with the XLA options of
+the package's batched solves (`afbl_jax.sim.batch_compiler_options`), so it measures the field
+as the solve runs it. Variants are timed interleaved, best of ``--repeats``, in one process;
+run pinned to one core for stable numbers::
 
     XLA_FLAGS=--xla_force_host_platform_device_count=1 taskset -c 1 \\
         python benchmarks/vector_field.py --cases 1024 [--against ../other-checkout]
@@ -153,10 +155,18 @@ def _loop_fn(n_evals: int, dtype):
     return run
 
 
-def compiled_loop(field, n_evals: int, dtype):
+def solve_options(package) -> dict:
+    """The XLA options ``package``'s batched solves compile with (none for a checkout that
+    has no `batch_compiler_options`), so the loop measures the field as the solve runs it."""
+    options = getattr(package.sim, "batch_compiler_options", None)
+    return options() if options is not None else {}
+
+
+def compiled_loop(field, n_evals: int, dtype, options=None):
     """A compiled function running ``n_evals`` evaluations, each on the state the previous
-    one moved (y <- y + h f(t, y)), so that no evaluation can be hoisted or merged."""
-    run = eqx.filter_jit(_loop_fn(n_evals, dtype))
+    one moved (y <- y + h f(t, y)), so that no evaluation can be hoisted or merged; compiled
+    with the XLA ``options`` (a dict, `solve_options`)."""
+    run = eqx.filter_jit(_loop_fn(n_evals, dtype), compiler_options=options or None)
     y0 = field.initial_state(dtype)
     return lambda: jax.block_until_ready(run(field, y0))
 
@@ -175,16 +185,19 @@ HLO_PATTERNS = {
 }
 
 
-def hlo_counts(field, dtype) -> dict[str, int]:
+def hlo_counts(field, dtype, options=None) -> dict[str, int]:
     """Op counts in the compiled HLO of one evaluation of ``field``."""
     y0 = field.initial_state(dtype)
     params, static = eqx.partition(field, eqx.is_array)
-    one = jax.jit(lambda p, y: eqx.combine(p, static)(jnp.asarray(0.5, dtype), y))
+    one = jax.jit(
+        lambda p, y: eqx.combine(p, static)(jnp.asarray(0.5, dtype), y),
+        compiler_options=options or None,
+    )
     text = one.lower(params, y0).compile().as_text()
     return {k: len(re.findall(p, text)) for k, p in HLO_PATTERNS.items()}
 
 
-def profile(field, n_evals: int, dtype, top: int = 15) -> None:
+def profile(field, n_evals: int, dtype, top: int = 15, options=None) -> None:
     """Time per compiled kernel (XLA fusion) of the evaluation loop from a JAX profiler
     trace, with the operations (JAX primitive names) each fusion holds."""
     import collections
@@ -193,13 +206,16 @@ def profile(field, n_evals: int, dtype, top: int = 15) -> None:
     import json
     import tempfile
 
-    run = compiled_loop(field, n_evals, dtype)
+    run = compiled_loop(field, n_evals, dtype, options)
     run()
     params, static = eqx.partition(field, eqx.is_array)
     loop = _loop_fn(n_evals, dtype)
     y0 = field.initial_state(dtype)
     text = (
-        jax.jit(lambda p, y: loop(eqx.combine(p, static), y)).lower(params, y0).compile().as_text()
+        jax.jit(lambda p, y: loop(eqx.combine(p, static), y), compiler_options=options or None)
+        .lower(params, y0)
+        .compile()
+        .as_text()
     )
     with tempfile.TemporaryDirectory() as d:
         jax.profiler.start_trace(d, create_perfetto_trace=True)
@@ -260,7 +276,8 @@ def main(argv=None):
         (p, v): make_field(packages[p], args.cases, args.seed, v, dtype, args.group_size)
         for p, v in keys
     }
-    runs = {k: compiled_loop(f, args.evals, dtype) for k, f in fields.items()}
+    options = {p: solve_options(pkg) for p, pkg in packages.items()}
+    runs = {k: compiled_loop(f, args.evals, dtype, options[k[0]]) for k, f in fields.items()}
     for r in runs.values():
         r()  # compile and warm up
     best = {k: np.inf for k in keys}
@@ -288,13 +305,13 @@ def main(argv=None):
         for v in names:
             print(f"{v:18s} {per[('against', v)] / per[('this', v)]:12.2f}")
     if args.profile:
-        profile(fields[("this", names[0])], args.evals, dtype)
+        profile(fields[("this", names[0])], args.evals, dtype, options=options["this"])
     if args.hlo:
         print()
         cols = list(HLO_PATTERNS)
         print(f"{'package':8s} {'variant':18s} " + " ".join(f"{c[:12]:>12s}" for c in cols))
         for p, v in keys:
-            counts = hlo_counts(fields[(p, v)], dtype)
+            counts = hlo_counts(fields[(p, v)], dtype, options[p])
             print(f"{p:8s} {v:18s} " + " ".join(f"{counts[c]:12d}" for c in cols))
     return per
 
