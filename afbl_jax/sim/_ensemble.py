@@ -52,6 +52,7 @@ from ..metrics import (
     sample_peaks,
 )
 from ..model import CHANNEL_INDEX
+from ._closed_loop import ClosedLoopState
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
 from ._lean import Groups, ensemble_field, lean_loop
 from ._solve import step_size_controller
@@ -457,13 +458,20 @@ class EnsembleField(eqx.Module):
         return field(t_case, y, (frozen, None))
 
 
-def _peak_sample(t, loop, inputs, state):
-    """`sample_peaks` of one case at (t, state): the error r(t) - q and the controller's
-    command (the signals `simulate` saves, without the plant)."""
-    measured = loop.plant.to_paper_layout(state.plant)
-    u_cmd = loop.command(t, measured, state.controller, inputs)[0]
-    err = inputs.scenario.reference(t).r - state.plant[CHANNEL_INDEX]
+def _peak_sample(t, loop, inputs, sampled):
+    """`sample_peaks` of one case at t from ``sampled`` = (plant state, controller state)
+    (`_sampled`): the error r(t) - q and the controller's command (the signals `simulate`
+    saves, without the plant)."""
+    plant, controller = sampled
+    measured = loop.plant.to_paper_layout(plant)
+    u_cmd = loop.command(t, measured, controller, inputs)[0]
+    err = inputs.scenario.reference(t).r - plant[CHANNEL_INDEX]
     return sample_peaks(err, u_cmd, inputs.vehicle, inputs.model)
+
+
+def _sampled(y: ClosedLoopState):
+    """What a peak sample reads of the closed-loop state: (plant, controller)."""
+    return y.plant, y.controller
 
 
 class _Cases(eqx.Module):
@@ -544,17 +552,17 @@ def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetri
 
 def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
     """Store the state at every save time ts[j] <= t_hi[i] not yet taken by group i
-    (``stored`` = (next index per group (G,), states: leaves (n_save, ..., n)));
-    ``state_at(t)``: the state at per-group times t (G,), leaves with the case axis last.
-    The peaks are computed from the stored states after the loop (`_stored_peaks`): one
-    sample per save time instead of one per step."""
-    cases = jnp.arange(groups.count * groups.size)
+    (``stored`` = (next index per group (G,), states: leaves (G, n_save, ..., group size),
+    one contiguous block per group)); ``state_at(t)``: the state at per-group times t (G,),
+    leaves with the case axis last. The peaks are computed from the stored states after the
+    loop (`_stored_peaks`): one sample per save time instead of one per step."""
+    index = jnp.arange(groups.count)
     dropped = ts.shape[0]  # an out-of-range row: the update is dropped
 
     def take(states, j, t, due):
-        row = jnp.where(groups.per_case(due), groups.per_case(j), dropped)
+        row = jnp.where(due, j, dropped)
         return jax.tree.map(
-            lambda s, x: s.at[row, ..., cases].set(jnp.moveaxis(x, -1, 0), mode="drop"),
+            lambda s, x: s.at[index, row].set(_blocks(x, groups), mode="drop"),
             states,
             state_at(t),
         )
@@ -562,10 +570,22 @@ def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
     return _due_samples(stored, ts, t_hi, take)
 
 
+def _blocks(x, groups: Groups):
+    """(..., n) -> (G, ..., group size): each group's cases as one block."""
+    return jnp.moveaxis(x.reshape(*x.shape[:-1], groups.count, groups.size), -2, 0)
+
+
+def _unblock(x):
+    """(G, n_save, ..., group size) -> (n_save, ..., n), the inverse of `_blocks` per row."""
+    x = jnp.moveaxis(x, 0, -2)
+    return x.reshape(*x.shape[:-2], x.shape[-2] * x.shape[-1])
+
+
 def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
     """Running peaks (n, 3) (`fold_peaks`) from the states `_store_samples` stored: the
     samples taken (j < the group's next index) that count (at or before the case's end)."""
     j_next, states = stored
+    states = jax.tree.map(_unblock, states)
     samples = jax.vmap(lambda t, y: sample((jnp.full((groups.count,), t),), y), in_axes=(0, 0))(
         ts, states
     )  # (n_save, n, 3)
@@ -582,7 +602,10 @@ def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
     if not n_save:
         peaks = None
     elif store:
-        states = jax.tree.map(lambda x: jnp.zeros((n_save, *x.shape), x.dtype), state0)
+        g = n // G
+        states = jax.tree.map(
+            lambda x: jnp.zeros((G, n_save, *x.shape[:-1], g), x.dtype), _sampled(state0)
+        )
         peaks = (jnp.zeros((G,), jnp.int32), states)
     else:
         peaks = (jnp.zeros((G,), jnp.int32), no_peaks((n,), dtype))
@@ -616,7 +639,7 @@ def _lean_continuous(
                 cases.peaks,
                 ts,
                 jnp.where(keep, step.t1, -jnp.inf),
-                lambda t: step.evaluate(grp.per_case(t)),
+                lambda t: _sampled(step.evaluate_groups(t, grp)),
                 grp,
             )
             cases = _Cases(cases.frozen, cases.t_frozen, peaks)

@@ -49,7 +49,9 @@ for the slowest group of a fixed set. The hooks see the lanes' groups (G = ``lan
 shapes above). A newly loaded group's first stage is evaluated afresh (as after a jump time),
 and the initial-step heuristic runs on blocks of ``lanes`` groups, so a group's arithmetic is
 the same as without the queue (bitwise, measured). The leaves of ``extra`` must be per group
-(shape (G,)) or per case with the case axis last (``(..., n)``); `lean_loop` checks this.
+(leading axis G: shape (G,), or one block per group (G, ...)) or per case with the case axis
+last (``(..., n)``); `lean_loop` checks this. A group's slice of a per-group leaf is
+contiguous, of a per-case leaf strided: large per-case records are cheaper as blocks.
 
 Per group the loop does what `diffrax.diffeqsolve` does for one system (the same solver step,
 the same controller call, non-finite error estimates rejected, the last step clipped onto t1
@@ -111,6 +113,18 @@ class Step(NamedTuple):
         return jax.vmap(lambda it, t: it.evaluate(t), in_axes=(-1, -1), out_axes=-1)(
             self.interpolation, t_case
         )
+
+    def evaluate_groups(self, t_group, groups: Groups):
+        """The state at per-group times ``t_group`` (G,), each within its group's step; the
+        interpolation evaluated once per group (its coefficients shared by the group's
+        cases), leaves with the case axis last."""
+        viewed = groups.view(self.interpolation)
+
+        def one(it, t):
+            it = eqx.tree_at(lambda i: (i.t0, i.t1), it, (it.t0[0], it.t1[0]))
+            return it.evaluate(t)
+
+        return groups.flat(jax.vmap(one, in_axes=(-2, 0), out_axes=-2)(viewed, t_group))
 
 
 class LoopOutcome(NamedTuple):
@@ -186,7 +200,8 @@ def ensemble_field(group_field: Callable, inputs, groups: Groups) -> Callable:
 
 
 def _extra_kinds(extra, G: int, n: int):
-    """Per leaf of ``extra``: True per group (shape (G,)), False per case (last axis n)."""
+    """Per leaf of ``extra``: True per group (shape (G,), or (G, ...) with a last axis other
+    than n: one block per group), False per case (last axis n)."""
 
     def kind(x):
         shape = jnp.shape(x)
@@ -194,9 +209,12 @@ def _extra_kinds(extra, G: int, n: int):
             return True
         if len(shape) >= 1 and shape[-1] == n:
             return False
+        if len(shape) >= 1 and shape[0] == G:
+            return True
         raise ValueError(
-            f"lean_loop: with lanes, every leaf of extra must be per group (shape ({G},)) or "
-            f"per case (case axis last, length {n}); got a leaf of shape {shape}."
+            f"lean_loop: with lanes, every leaf of extra must be per group (leading axis of "
+            f"length {G}) or per case (case axis last, length {n}); got a leaf of shape "
+            f"{shape}."
         )
 
     return jax.tree.map(kind, extra)

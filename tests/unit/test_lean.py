@@ -215,7 +215,9 @@ def test_diffeqsolve_ensemble_is_reverse_differentiable_lean_is_not():
 
 def _decay_loop(lanes, extra=None):
     """`lean_loop` on dy/dt = -k y (cases with the rates ``K``, groups of 2: different step
-    counts per group); extra: accepted steps per group and the running max of |y| per case."""
+    counts per group); extra: accepted steps per group, the running max of |y| per case, and
+    the state at t = 0.5 s from the dense interpolation, stored per group as one block (G, 2)
+    (`Step.evaluate_groups`) and per case (n,) (`Step.evaluate`)."""
     import diffrax
 
     groups = A.sim.Groups(4, 2)
@@ -227,13 +229,22 @@ def _decay_loop(lanes, extra=None):
     controllers = eqx.filter_vmap(
         lambda _: diffrax.PIDController(rtol=1e-8, atol=1e-10, norm=mc_norm)
     )(jnp.arange(4))
-    extra = (jnp.zeros(4, jnp.int32), jnp.zeros(8)) if extra is None else extra
+    if extra is None:
+        extra = (jnp.zeros(4, jnp.int32), jnp.zeros(8), jnp.zeros((4, 2)), jnp.zeros(8))
 
     def after_step(extra, step, args, keep, at_boundary, inputs):
-        count, peak = extra
-        keep_case = jnp.repeat(keep, 2, total_repeat_length=keep.shape[0] * 2)
+        count, peak, mid_block, mid_case = extra
+        lanes = A.sim.Groups(keep.shape[0], 2)
+        keep_case = lanes.per_case(keep)
         peak = jnp.where(keep_case, jnp.maximum(peak, jnp.abs(step.y1)), peak)
-        return (count + keep, peak), None, args, jnp.zeros_like(keep), jnp.zeros_like(keep)
+        inside = keep & (step.t0 < 0.5) & (step.t1 >= 0.5)
+        half = jnp.full(keep.shape, 0.5)
+        at_half = step.evaluate_groups(half, lanes).reshape(-1, 2)
+        mid_block = jnp.where(inside[:, None], at_half, mid_block)
+        at_half_case = step.evaluate(lanes.per_case(half))
+        mid_case = jnp.where(lanes.per_case(inside), at_half_case, mid_case)
+        extra = (count + keep, peak, mid_block, mid_case)
+        return extra, None, args, jnp.zeros_like(keep), jnp.zeros_like(keep)
 
     return A.sim.lean_loop(
         field,
@@ -267,19 +278,27 @@ def test_lean_loop_work_queue_gives_every_group_its_own_steps():
     assert len(set(steps.tolist())) >= 3  # the groups differ, so the queue reorders work
     y_exact = np.linspace(1.0, 2.0, 8) * np.exp(-np.array([1, 2, 40, 50, 3, 1, 90, 5.0]))
     np.testing.assert_allclose(ref.y, y_exact, rtol=1e-6, atol=1e-9)
+    # the interpolated state at t = 0.5 s: the exact solution, per group as per case
+    y_half = np.linspace(1.0, 2.0, 8) * np.exp(-0.5 * np.array([1, 2, 40, 50, 3, 1, 90, 5.0]))
+    np.testing.assert_allclose(ref.extra[2].reshape(-1), y_half, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(ref.extra[2].reshape(-1), ref.extra[3], rtol=1e-14, atol=1e-300)
     for lanes in (1, 2):
         out = _decay_loop(lanes)
         np.testing.assert_array_equal(out.num_steps, ref.num_steps)
         np.testing.assert_array_equal(out.extra[0], steps - np.asarray(ref.num_rejected_steps))
         np.testing.assert_allclose(out.y, ref.y, rtol=1e-9, atol=1e-15)
         np.testing.assert_allclose(out.extra[1], ref.extra[1], rtol=1e-9)
+        # the per-group blocks move with their groups through the queue
+        np.testing.assert_allclose(out.extra[2], ref.extra[2], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(out.extra[3], ref.extra[3], rtol=1e-9, atol=1e-15)
         np.testing.assert_array_equal(out.t, np.ones(4))
     with pytest.raises(ValueError, match="lanes must be an integer >= 1"):
         _decay_loop(0)
     with pytest.raises(ValueError, match=r"lanes \(3\) must divide the number of groups \(4\)"):
         _decay_loop(3)
-    with pytest.raises(ValueError, match=r"per group \(shape \(4,\)\) or per case"):
-        _decay_loop(2, extra=(jnp.zeros(4, jnp.int32), jnp.zeros((8, 3))))
+    bad = (jnp.zeros(4, jnp.int32), jnp.zeros(8), jnp.zeros((4, 2)), jnp.zeros((8, 3)))
+    with pytest.raises(ValueError, match=r"per group \(leading axis of length 4\) or per case"):
+        _decay_loop(2, extra=bad)
 
 
 def test_lean_work_queue_equals_chunks_one_after_the_other(mc_cases):
