@@ -347,11 +347,13 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     devices = jax.local_devices()[:1] if cfg.get("one_device") else jax.local_devices()
     rss0 = _rss_mb()
 
-    chunk_size = cfg.get("chunk_size")
-    if cfg.get("platform_chunk"):  # the Monte-Carlo default: its chunking per platform
-        from .montecarlo import device_chunk
+    chunk_size, group_size = cfg.get("chunk_size"), cfg.get("group_size")
+    if cfg.get("platform_chunk"):  # the Monte-Carlo default: its chunking and groups
+        from .montecarlo import device_chunk, ensemble_group_size
 
         chunk_size = device_chunk(chunk_size, devices)
+        digital = unmodeled is not None and unmodeled.max_samples > 0
+        group_size = ensemble_group_size(digital, n, len(devices))
 
     def call():
         return jax.block_until_ready(
@@ -363,7 +365,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
                 atol=cfg["atol"],
                 dtype=cfg["dtype"],
                 chunk_size=chunk_size,
-                group_size=cfg.get("group_size"),
+                group_size=group_size,
                 n_save=cfg.get("n_save", 0),
                 devices=devices,
                 unmodeled=unmodeled,
@@ -387,7 +389,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
         "rtol": cfg["rtol"],
         "atol": cfg["atol"],
         "chunk_size": chunk_size,
-        "group_size": cfg.get("group_size"),
+        "group_size": group_size,
         "n_save": cfg.get("n_save", 0),
         "devices": len(devices),
         "unmodeled": REALISTIC_VEHICLE if unmodeled else None,

@@ -199,6 +199,22 @@ def test_results_that_cannot_fit_are_refused(dist, tmp_path):
 
 
 # ------------------------------------------------------------ progress and padding
+def test_ensemble_group_size_follows_control_and_chunk():
+    """Groups of 16 with a continuous controller where every device holds whole groups of 16,
+    else (and always with digital control: one sample clock per group) groups of 4."""
+    assert mc.ensemble_group_size(False, 1024, 2) == mc.CONTINUOUS_GROUP_SIZE == 16
+    assert mc.ensemble_group_size(False, 16, 1) == 16
+    assert mc.ensemble_group_size(False, 16, 2) == mc.GROUP_SIZE == 4  # 8 cases per device
+    assert mc.ensemble_group_size(False, 24, 1) == 4
+    assert mc.ensemble_group_size(True, 1024, 2) == 4
+    assert mc.BATCH_SETTINGS["ensemble_f32"]["group_size"] == 16
+    assert not mc.distribution_is_digital(mc.default_distribution())
+    digital = mc.Distribution.from_dict(
+        {"unmodeled": {"enabled": True, "control_rate": [200, 400]}}
+    )
+    assert mc.distribution_is_digital(digital)
+
+
 def test_progress_counts_cases_and_one_chunk_runs_are_small(monkeypatch, capsys, fbl, dist):
     assert mc.chunk_ladder(256, 8) == (8, 16, 32, 64, 128, 256)
     assert mc.simulated_size(1, 256, 8, n_chunks=1) == 8
@@ -207,7 +223,7 @@ def test_progress_counts_cases_and_one_chunk_runs_are_small(monkeypatch, capsys,
     sizes = _recording(monkeypatch)
     one = mc.run_montecarlo(fbl, dist, 1, SEED, chunk_size=256, progress=True)
     err = capsys.readouterr().err
-    assert sizes == [CHUNK]  # one group of 4 cases, not 256
+    assert sizes == [mc.CONTINUOUS_GROUP_SIZE]  # one group of 16 cases, not 256
     assert "1/1" in err and "/256" not in err
     assert table_columns(one)["case"].tolist() == [0]
     sizes.clear()

@@ -11,6 +11,7 @@ from ._report import wilson_interval as wilson_interval
 from ._report import write_report as write_report
 from ._runner import ACCELERATOR_CHUNK_SIZE as ACCELERATOR_CHUNK_SIZE
 from ._runner import BATCH_SETTINGS as BATCH_SETTINGS
+from ._runner import CONTINUOUS_GROUP_SIZE as CONTINUOUS_GROUP_SIZE
 from ._runner import CPU_CHUNK_SIZE as CPU_CHUNK_SIZE
 from ._runner import DEFAULT_STRATEGY as DEFAULT_STRATEGY
 from ._runner import INNER_CHUNK as INNER_CHUNK
@@ -23,6 +24,8 @@ from ._runner import chunk_ladder as chunk_ladder
 from ._runner import config_differences as config_differences
 from ._runner import default_chunk_size as default_chunk_size
 from ._runner import device_chunk as device_chunk
+from ._runner import distribution_is_digital as distribution_is_digital
+from ._runner import ensemble_group_size as ensemble_group_size
 from ._runner import merge_results as merge_results
 from ._runner import read_invocations as read_invocations
 from ._runner import register_strategy as register_strategy

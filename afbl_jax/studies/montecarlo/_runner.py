@@ -8,23 +8,27 @@ maps ``(controller, chunk, settings, devices) -> per-case metrics`` (`METRIC_NAM
 (`afbl_jax.simulate_batch` underneath, case axis split over ``devices``; every strategy runs
 every closed loop, including the distribution's ``[unmodeled]`` section):
 
-- ``"ensemble_f32"`` (the default; `DEFAULT_STRATEGY`): float32, groups of `GROUP_SIZE`
-  consecutive cases each solved as one ODE system (shared steps, every case meeting its own
-  tolerance), the groups vectorised, each device working through its cases `INNER_CHUNK` at a
-  time; default tolerances rtol 3e-6, atol 3e-7 (float32 cannot honour 1e-6 / 1e-8). The
-  fastest path that meets the accuracy bound (max relative ISE error <= 1e-3 against a tight
-  float64 reference; measured by `afbl bench` and checked by the tests). At rtol 1e-5,
-  atol 1e-6 (the benchmark's ``ensemble_f32`` rows, 1.2-1.4x faster) 3 of 8190 runs of the
-  default 4096-case study missed the bound (up to 1.5e-3, FBL cases driving the rotors into
-  their limit, where the clipping kinks meet float32 round-off); at 3e-6 / 3e-7 none did
+- ``"ensemble_f32"`` (the default; `DEFAULT_STRATEGY`): float32, groups of
+  `ensemble_group_size` consecutive cases (16 with a continuous controller where the chunk is a
+  multiple of devices x 16, else `GROUP_SIZE` = 4) each solved as one ODE system (shared steps,
+  every case meeting its own tolerance), the groups vectorised, each device working through its
+  cases `INNER_CHUNK` at a time; default tolerances rtol 3e-6, atol 3e-7 (float32 cannot honour
+  1e-6 / 1e-8). The fastest path that meets the accuracy bound (max relative ISE error <= 1e-3
+  against a tight float64 reference; measured by `afbl bench` and checked by the tests). At
+  rtol 1e-5, atol 1e-6 (the benchmark's ``ensemble_f32`` rows, 1.2-1.4x faster) 3 of 8190 runs
+  of the default 4096-case study missed the bound (up to 1.5e-3, FBL cases driving the rotors
+  into their limit, where the clipping kinks meet float32 round-off); at 3e-6 / 3e-7 none did
   (max 6.7e-4).
 - ``"ensemble"``: the same in float64 (default tolerances rtol 1e-6, atol 1e-8).
 - ``"vmap"``: ``jax.vmap`` over `afbl_jax.simulate` in float64 (every case its own step
   sequence; results independent of how cases are chunked).
 
 Ensemble results depend (within the tolerance) on which cases share a group (fixed blocks of
-`GROUP_SIZE` case indices), not on the chunking: 256- and 1024-case chunks give bitwise the
-same results (measured on the default study). Resuming is exact (same chunks). With digital
+`ensemble_group_size` case indices), not on the chunking among chunk sizes with the same group
+size (with a continuous controller every multiple of devices x 16, which `run_montecarlo`
+makes of a chunk size that is a multiple of 16; with a digital one every multiple of devices x
+`GROUP_SIZE`): 256- and 1024-case chunks give bitwise the same results
+(measured on the default study). Resuming is exact (same chunks). With digital
 control the cases of a group share their sample instants; the sampler draws one control rate
 per group of `GROUP_SIZE` case indices (`afbl_jax.studies.montecarlo.sample_cases`).
 Other strategies can be added with `register_strategy`. Metric definitions:
@@ -71,6 +75,35 @@ RESULTS_FILE = "results.parquet"
 
 
 DEFAULT_STRATEGY = "ensemble_f32"
+CONTINUOUS_GROUP_SIZE = 16
+"""Cases per ensemble group with a continuous controller (a multiple of `GROUP_SIZE`). Measured
+on 2048 default Monte-Carlo cases (2 CPU devices, float32, 401 samples): 9.0 s in groups of
+16 against 10.1 s in groups of 4 and 9.7 s in groups of 32; larger groups take more shared
+steps (jump times of every case, the strictest case's error) for less per-step work per case
+(the turbulence lines' cos/sin of omega_k t are computed once per group)."""
+
+
+def ensemble_group_size(digital: bool, n_cases: int | None = None, n_devices: int = 1) -> int:
+    """Cases per ensemble group of the built-in ensemble strategies for ``n_cases`` cases
+    split over ``n_devices`` devices: `CONTINUOUS_GROUP_SIZE` with a continuous controller
+    where ``n_cases`` (None: any) is a multiple of devices x `CONTINUOUS_GROUP_SIZE`, else
+    `GROUP_SIZE` (always with a digital controller: a group shares one sample clock, and the
+    sampler draws one control rate per `GROUP_SIZE` cases)."""
+    unit = CONTINUOUS_GROUP_SIZE * int(n_devices)
+    whole = n_cases is None or int(n_cases) % unit == 0
+    return CONTINUOUS_GROUP_SIZE if not digital and whole else GROUP_SIZE
+
+
+def _digital(unmodeled) -> bool:
+    return unmodeled is not None and unmodeled.max_samples > 0
+
+
+def distribution_is_digital(distribution: Distribution) -> bool:
+    """Whether the distribution's cases have a digital controller (unmodeled.control_rate >
+    0 Hz)."""
+    return distribution.spec["unmodeled"]["control_rate"][1] > 0
+
+
 INNER_CHUNK = 128
 """Cases per CPU device solved at a time inside one compiled call (keeps the working set in
 cache); accelerators solve all their cases at once (`device_chunk`)."""
@@ -146,25 +179,30 @@ BATCH_SETTINGS = {
     "ensemble_f32": {
         "strategy": "ensemble",
         "dtype": "float32",
-        "group_size": GROUP_SIZE,
+        "group_size": CONTINUOUS_GROUP_SIZE,
         "chunk_size": INNER_CHUNK,
     },
     "ensemble": {
         "strategy": "ensemble",
         "dtype": "float64",
-        "group_size": GROUP_SIZE,
+        "group_size": CONTINUOUS_GROUP_SIZE,
         "chunk_size": INNER_CHUNK,
     },
     "vmap": {"strategy": "vmap", "dtype": None, "group_size": None, "chunk_size": INNER_CHUNK},
 }
 """`afbl_jax.simulate_batch` settings of the built-in strategies (besides `SolverSettings`);
-``dtype`` None: JAX's default float."""
+``dtype`` None: JAX's default float; ensembles with a digital controller run in groups of
+`GROUP_SIZE` instead (`ensemble_group_size`)."""
 
 
 def _batch_strategy(name: str) -> Strategy:
     def run(controller, chunk: CaseBatch, settings: SolverSettings, devices=None):
         kwargs = dict(BATCH_SETTINGS[name])
         kwargs["chunk_size"] = device_chunk(kwargs["chunk_size"], devices)
+        if kwargs["group_size"] is not None:
+            n_dev = len(devices) if devices else len(jax.local_devices())
+            digital = _digital(chunk.unmodeled)
+            kwargs["group_size"] = ensemble_group_size(digital, chunk.n_cases, n_dev)
         m = simulate_batch(
             controller,
             chunk.scenario,
@@ -318,7 +356,8 @@ def host_chunks(n_chunks: int, host_index: int, host_count: int) -> range:
 def chunk_ladder(chunk_size: int, unit: int) -> tuple[int, ...]:
     """The sizes a chunk may be simulated at: ``unit``, 2 ``unit``, 4 ``unit``, ... (below
     ``chunk_size``) and ``chunk_size``. A few fixed sizes, so runs of any length reuse the same
-    compiled programs; ``unit`` (devices x `GROUP_SIZE`) keeps the ensemble groups whole."""
+    compiled programs; ``unit`` (devices x `ensemble_group_size`) keeps the ensemble groups
+    of the default runs whole."""
     sizes, s = [], int(unit)
     while s < chunk_size:
         sizes.append(s)
@@ -487,15 +526,18 @@ def run_montecarlo(
     ``out/invocations.jsonl`` (`read_invocations`), with the chunks it computed.
 
     ``strategy``: a name of `STRATEGIES`, or None/"auto" (`resolve_strategy`). Ensemble
-    groups are consecutive blocks of `GROUP_SIZE` case indices, so with chunk sizes that are
-    multiples of `GROUP_SIZE` the numbers do not depend on the chunk size. A run of a single
+    groups are consecutive blocks of `ensemble_group_size` case indices (16 with a continuous
+    controller and a chunk size that is a multiple of 16, else 4), so the numbers do not
+    depend on the chunk size among chunk sizes that are multiples of 16 (or among those that
+    are not). A run of a single
     chunk is simulated at the smallest size of `chunk_ladder` that holds its cases
     (`simulated_size`); the progress bar counts the run's own cases, never the padding.
 
     ``chunk_size``: cases per chunk (None: `default_chunk_size`, 1024 on CPU devices, 16384 on
     an accelerator). ``shard``: split each chunk's case axis over all local JAX devices
     (default: when there are several); ``chunk_size`` is then rounded up to a multiple of
-    devices x `GROUP_SIZE`.
+    devices x the group size (16 with a continuous controller and a chunk size that is a
+    multiple of 16, else `GROUP_SIZE`).
 
     Several hosts: ``host_index`` i of ``host_count`` P runs only the chunks c = i (mod P)
     (`host_chunks`) and returns / writes only their rows; `merge_results` joins the hosts'
@@ -526,7 +568,11 @@ def run_montecarlo(
     n_dev = len(jax.local_devices())
     shard = n_dev > 1 if shard is None else bool(shard)
     chunk_size = int(chunk_size)
-    unit = GROUP_SIZE * (n_dev if shard else 1)
+    # groups of 16 (continuous control) where the chunk size allows them; every size a chunk
+    # is simulated at (`chunk_ladder`) keeps those groups whole on every device
+    digital = distribution_is_digital(distribution)
+    group = ensemble_group_size(digital, chunk_size)
+    unit = group * (n_dev if shard else 1)
     if shard:
         # every device gets whole groups of consecutive cases: the ensemble groups (and so the
         # numbers) are the same as on one device

@@ -49,8 +49,9 @@ from ...scenario import (
 from ._distribution import Distribution
 
 GROUP_SIZE = 4
-"""Cases per ensemble group (measured: fewer shared jump times than larger groups, less per-step
-solver work per case than single cases); digital-control cases of a group share one rate."""
+"""Cases per drawn control rate (digital control: the cases of a block of `GROUP_SIZE`
+consecutive indices share one rate) and per ensemble group with a digital controller (a group
+shares one sample clock; `afbl_jax.studies.montecarlo.ensemble_group_size`)."""
 
 INPUT_COLUMNS: tuple[str, ...] = (
     "payload_fraction",
