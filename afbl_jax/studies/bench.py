@@ -20,7 +20,8 @@ Strategies (rows of bench.json):
   128 inside one compiled call (``simulate_batch(chunk_size=128)``): the per-step working set
   then stays in cache (rows with N <= 128 per device are the unchunked ensemble).
 - ``montecarlo_default``: exactly what ``afbl montecarlo`` runs by default per chunk (strategy
-  ``ensemble_f32``: float32, groups of 4 cases, 128 cases per CPU device at a time (all
+  ``ensemble_f32``: float32, groups of 16 cases (`ensemble_group_size`; 4 with digital
+  control), 128 cases per CPU device at a time (all
   cases at once on a GPU), 401 saved samples for the peak metrics, rtol 3e-6, atol 3e-7);
   ``montecarlo_default_1dev``: the same on one device (one core), for a per-core comparison
   with the single-core scipy loop. With more than 128 cases per CPU device, a device's 128-case
