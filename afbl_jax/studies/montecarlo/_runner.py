@@ -528,9 +528,9 @@ def run_montecarlo(
     ``strategy``: a name of `STRATEGIES`, or None/"auto" (`resolve_strategy`). Ensemble
     groups are consecutive blocks of `ensemble_group_size` case indices (16 with a continuous
     controller and a chunk size that is a multiple of 16, else 4), so the numbers do not
-    depend on the chunk size among chunk sizes that are multiples of 16 (or among those that
-    are not). A run of a single
-    chunk is simulated at the smallest size of `chunk_ladder` that holds its cases
+    depend on the chunk size among chunk sizes that are multiples of 16. With another chunk
+    size a run shorter than one chunk may be simulated at a size that takes groups of 16. A
+    run of a single chunk is simulated at the smallest size of `chunk_ladder` that holds its cases
     (`simulated_size`); the progress bar counts the run's own cases, never the padding.
 
     ``chunk_size``: cases per chunk (None: `default_chunk_size`, 1024 on CPU devices, 16384 on
