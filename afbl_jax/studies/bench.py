@@ -354,7 +354,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
 
         chunk_size = device_chunk(chunk_size, devices)
         digital = unmodeled is not None and unmodeled.max_samples > 0
-        group_size = ensemble_group_size(digital, n, len(devices))
+        group_size = ensemble_group_size(digital, n, len(devices), devices[0].platform)
 
     def call():
         return jax.block_until_ready(

@@ -207,6 +207,7 @@ def test_ensemble_group_size_follows_control_and_chunk():
     assert mc.ensemble_group_size(False, 16, 2) == mc.GROUP_SIZE == 4  # 8 cases per device
     assert mc.ensemble_group_size(False, 24, 1) == 4
     assert mc.ensemble_group_size(True, 1024, 2) == 4
+    assert mc.ensemble_group_size(False, 16384, 1, "gpu") == 4  # accelerators: not measured
     assert mc.BATCH_SETTINGS["ensemble_f32"]["group_size"] == 16
     assert not mc.distribution_is_digital(mc.default_distribution())
     digital = mc.Distribution.from_dict(

@@ -76,22 +76,28 @@ RESULTS_FILE = "results.parquet"
 
 DEFAULT_STRATEGY = "ensemble_f32"
 CONTINUOUS_GROUP_SIZE = 16
-"""Cases per ensemble group with a continuous controller (a multiple of `GROUP_SIZE`). Measured
-on 2048 default Monte-Carlo cases (2 CPU devices, float32, 401 samples): 9.0 s in groups of
-16 against 10.1 s in groups of 4 and 9.7 s in groups of 32; larger groups take more shared
-steps (jump times of every case, the strictest case's error) for less per-step work per case
-(the turbulence lines' cos/sin of omega_k t are computed once per group)."""
+"""Cases per ensemble group with a continuous controller on CPU devices (a multiple of
+`GROUP_SIZE`). Measured on 2048 default Monte-Carlo cases (2 CPU devices, float32, 401
+samples): 9.0 s in groups of 16 against 10.1 s in groups of 4 and 9.7 s in groups of 32; larger
+groups take more shared steps (jump times of every case, the strictest case's error) for less
+per-step work per case (the turbulence lines' cos/sin of omega_k t are computed once per
+group). Accelerators keep `GROUP_SIZE`: there a solve's time follows its slowest group's
+steps, not the work per step (not measured with groups of 16)."""
 
 
-def ensemble_group_size(digital: bool, n_cases: int | None = None, n_devices: int = 1) -> int:
+def ensemble_group_size(
+    digital: bool, n_cases: int | None = None, n_devices: int = 1, platform: str = "cpu"
+) -> int:
     """Cases per ensemble group of the built-in ensemble strategies for ``n_cases`` cases
-    split over ``n_devices`` devices: `CONTINUOUS_GROUP_SIZE` with a continuous controller
-    where ``n_cases`` (None: any) is a multiple of devices x `CONTINUOUS_GROUP_SIZE`, else
-    `GROUP_SIZE` (always with a digital controller: a group shares one sample clock, and the
-    sampler draws one control rate per `GROUP_SIZE` cases)."""
+    split over ``n_devices`` devices of ``platform``: `CONTINUOUS_GROUP_SIZE` with a
+    continuous controller on CPU devices where ``n_cases`` (None: any) is a multiple of
+    devices x `CONTINUOUS_GROUP_SIZE`, else `GROUP_SIZE` (always with a digital controller: a
+    group shares one sample clock, and the sampler draws one control rate per `GROUP_SIZE`
+    cases)."""
     unit = CONTINUOUS_GROUP_SIZE * int(n_devices)
     whole = n_cases is None or int(n_cases) % unit == 0
-    return CONTINUOUS_GROUP_SIZE if not digital and whole else GROUP_SIZE
+    cpu = platform == "cpu"
+    return CONTINUOUS_GROUP_SIZE if cpu and not digital and whole else GROUP_SIZE
 
 
 def _digital(unmodeled) -> bool:
@@ -201,8 +207,8 @@ def _batch_strategy(name: str) -> Strategy:
         kwargs["chunk_size"] = device_chunk(kwargs["chunk_size"], devices)
         if kwargs["group_size"] is not None:
             n_dev = len(devices) if devices else len(jax.local_devices())
-            digital = _digital(chunk.unmodeled)
-            kwargs["group_size"] = ensemble_group_size(digital, chunk.n_cases, n_dev)
+            digital, platform = _digital(chunk.unmodeled), _platform(devices)
+            kwargs["group_size"] = ensemble_group_size(digital, chunk.n_cases, n_dev, platform)
         m = simulate_batch(
             controller,
             chunk.scenario,
@@ -571,7 +577,7 @@ def run_montecarlo(
     # groups of 16 (continuous control) where the chunk size allows them; every size a chunk
     # is simulated at (`chunk_ladder`) keeps those groups whole on every device
     digital = distribution_is_digital(distribution)
-    group = ensemble_group_size(digital, chunk_size)
+    group = ensemble_group_size(digital, chunk_size, platform=_platform())
     unit = group * (n_dev if shard else 1)
     if shard:
         # every device gets whole groups of consecutive cases: the ensemble groups (and so the
