@@ -572,20 +572,19 @@ def _store_samples(stored, ts, t_hi, state_at, groups: Groups):
 
 def _blocks(x, groups: Groups):
     """(..., n) -> (G, ..., group size): each group's cases as one block."""
-    return jnp.moveaxis(x.reshape(*x.shape[:-1], groups.count, groups.size), -2, 0)
+    return jnp.moveaxis(groups.view(x), -2, 0)
 
 
-def _unblock(x):
-    """(G, n_save, ..., group size) -> (n_save, ..., n), the inverse of `_blocks` per row."""
-    x = jnp.moveaxis(x, 0, -2)
-    return x.reshape(*x.shape[:-2], x.shape[-2] * x.shape[-1])
+def _unblock(x, groups: Groups):
+    """(G, ..., group size) -> (..., n), the inverse of `_blocks`."""
+    return groups.flat(jnp.moveaxis(x, 0, -2))
 
 
 def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
     """Running peaks (n, 3) (`fold_peaks`) from the states `_store_samples` stored: the
     samples taken (j < the group's next index) that count (at or before the case's end)."""
     j_next, states = stored
-    states = jax.tree.map(_unblock, states)
+    states = jax.tree.map(lambda x: _unblock(x, groups), states)
     samples = jax.vmap(lambda t, y: sample((jnp.full((groups.count,), t),), y), in_axes=(0, 0))(
         ts, states
     )  # (n_save, n, 3)

@@ -353,7 +353,7 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
         from .montecarlo import device_chunk, ensemble_group_size
 
         chunk_size = device_chunk(chunk_size, devices)
-        digital = unmodeled is not None and unmodeled.max_samples > 0
+        digital = unmodeled is not None and unmodeled.digital
         group_size = ensemble_group_size(digital, n, len(devices), devices[0].platform)
 
     def call():

@@ -100,10 +100,6 @@ def ensemble_group_size(
     return CONTINUOUS_GROUP_SIZE if cpu and not digital and whole else GROUP_SIZE
 
 
-def _digital(unmodeled) -> bool:
-    return unmodeled is not None and unmodeled.max_samples > 0
-
-
 def distribution_is_digital(distribution: Distribution) -> bool:
     """Whether the distribution's cases have a digital controller (unmodeled.control_rate >
     0 Hz)."""
@@ -207,7 +203,8 @@ def _batch_strategy(name: str) -> Strategy:
         kwargs["chunk_size"] = device_chunk(kwargs["chunk_size"], devices)
         if kwargs["group_size"] is not None:
             n_dev = len(devices) if devices else len(jax.local_devices())
-            digital, platform = _digital(chunk.unmodeled), _platform(devices)
+            digital = chunk.unmodeled is not None and chunk.unmodeled.digital
+            platform = _platform(devices)
             kwargs["group_size"] = ensemble_group_size(digital, chunk.n_cases, n_dev, platform)
         m = simulate_batch(
             controller,

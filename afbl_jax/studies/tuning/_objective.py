@@ -272,7 +272,7 @@ def case_costs(
     # devices whose blocks hold whole sampler groups (their cases share one control rate)
     n_dev = max(d for d in range(1, len(local) + 1) if d == 1 or n % (GROUP_SIZE * d) == 0)
     unmodeled = getattr(cases, "unmodeled", None)
-    digital = unmodeled is not None and unmodeled.max_samples > 0
+    digital = unmodeled is not None and unmodeled.digital
     m = simulate_batch(
         controller,
         cases.scenario,
