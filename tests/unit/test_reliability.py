@@ -214,6 +214,10 @@ def test_ensemble_group_size_follows_control_and_chunk():
         {"unmodeled": {"enabled": True, "control_rate": [200, 400]}}
     )
     assert mc.distribution_is_digital(digital)
+    # a rate in a disabled section samples no unmodeled dynamics: the cases stay continuous
+    off = mc.Distribution.from_dict({"unmodeled": {"enabled": False, "control_rate": [200, 400]}})
+    assert not mc.distribution_is_digital(off)
+    assert mc.sample_cases(off, 4, 0).unmodeled is None
 
 
 def test_progress_counts_cases_and_one_chunk_runs_are_small(monkeypatch, capsys, fbl, dist):

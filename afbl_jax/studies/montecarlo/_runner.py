@@ -101,9 +101,10 @@ def ensemble_group_size(
 
 
 def distribution_is_digital(distribution: Distribution) -> bool:
-    """Whether the distribution's cases have a digital controller (unmodeled.control_rate >
-    0 Hz)."""
-    return distribution.spec["unmodeled"]["control_rate"][1] > 0
+    """Whether the distribution's cases have a digital controller (its ``[unmodeled]``
+    section enabled, with unmodeled.control_rate > 0 Hz)."""
+    unmodeled = distribution.spec["unmodeled"]
+    return bool(unmodeled["enabled"]) and unmodeled["control_rate"][1] > 0
 
 
 INNER_CHUNK = 128
