@@ -46,7 +46,7 @@ import jax.numpy as jnp
 
 from .._typing import PlantState, Vec3, Vec4
 from ._params import QuadrotorParams
-from ._rotations import body_rates_from_euler_rates, rotation_matrix
+from ._rotations import body_rates_from_euler_rates, rotate, rotate_transposed, rotation_matrix
 
 
 def aerodynamic_wrench(
@@ -55,7 +55,7 @@ def aerodynamic_wrench(
     """(force [N] earth frame, torque [N m] body axes) of the linear drag model.
     Plant velocities (entries 6-8) are earth-frame in every plant layout."""
     force = drag_coefficient * (wind_velocity - state[6:9])
-    f_body = rotation_matrix(state[3], state[4], state[5]).T @ force
+    f_body = rotate_transposed(rotation_matrix(state[3], state[4], state[5]), force)
     zero = jnp.zeros_like(cp_offset)
     torque = jnp.stack([-cp_offset * f_body[1], cp_offset * f_body[0], zero])
     return force, torque
@@ -76,7 +76,7 @@ def rotor_drag_wrench(
     phi, theta, psi = state[3], state[4], state[5]
     rot = rotation_matrix(phi, theta, psi)
     omega = body_rates_from_euler_rates(phi, theta, state[9:12])
-    v_air = rot.T @ (state[6:9] - wind_velocity)
+    v_air = rotate_transposed(rot, state[6:9] - wind_velocity)
     hubs = vehicle.rotor_positions()
     v_hub = v_air + jnp.cross(omega, hubs)
     k_d, k_z = vehicle.rotor_drag_horizontal, vehicle.rotor_drag_vertical
@@ -88,7 +88,7 @@ def rotor_drag_wrench(
     zero = jnp.zeros_like(vehicle.cp_offset)
     r_cp = jnp.stack([zero, zero, vehicle.cp_offset])
     torque = jnp.sum(jnp.cross(hubs, h_force), axis=0) + jnp.cross(r_cp, parasitic)
-    return rot @ f_body, torque
+    return rotate(rot, f_body), torque
 
 
 class AbstractAerodynamics(eqx.Module):

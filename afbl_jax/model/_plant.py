@@ -46,7 +46,12 @@ import numpy as np
 
 from .._typing import Array, PlantState, Scalar, Vec3, Vec4
 from ._params import QuadrotorParams
-from ._rotations import body_rates_from_euler_rates, euler_rates_from_body_rates, thrust_direction
+from ._rotations import (
+    body_rates_from_euler_rates,
+    cos_sin,
+    euler_rates_from_body_rates,
+    thrust_direction,
+)
 
 STATE_LAYOUT: tuple[str, ...] = (
     "x",
@@ -246,7 +251,7 @@ def feedback_linearize(params: QuadrotorParams, state: PlantState, v: Vec4) -> V
     u1 = Ix / arm * (v[0] - thetad * psid * (Iy - Iz) / Ix)
     u2 = Iy / arm * (v[1] - phid * psid * (Iz - Ix) / Iy)
     u3 = Iz * (v[2] - phid * thetad * (Ix - Iy) / Iz)
-    u4 = params.m * (params.g + v[3]) / (jnp.cos(phi) * jnp.cos(theta))
+    u4 = params.m * (params.g + v[3]) / (cos_sin(phi)[0] * cos_sin(theta)[0])
     return jnp.stack([u1, u2, u3, u4])
 
 

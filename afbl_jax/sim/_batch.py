@@ -205,6 +205,7 @@ def _run(
 CPU_COMPILER_OPTIONS: dict[str, object] = {
     "xla_cpu_copy_insertion_use_region_analysis": True,
     "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT",
+    "xla_disable_hlo_passes": "cse_barrier_expander",
 }
 """XLA options the batched solves are compiled with where the installed XLA has them:
 
@@ -215,17 +216,28 @@ CPU_COMPILER_OPTIONS: dict[str, object] = {
   reductions to YNNPACK by default, and on an ensemble's reductions (the error norm over the
   cases, the per-case sums of the vector field) that library call was measured ~4x slower
   than XLA's own loop (one 2048-case ensemble per device). The sums then run in XLA's order,
-  so results differ from the default compilation by rounding only."""
+  so results differ from the default compilation by rounding only;
+- optimization barriers kept until code generation (XLA's ``cse_barrier_expander`` pass, which
+  removes them before fusion, disabled): XLA's CPU fusion recomputes an expensive value such as
+  a sine inside every fused consumer, and a barrier is the one way to have it computed once
+  (`afbl_jax.model.cos_sin`: the Euler angles' cosines and sines, 3 + 3 per evaluation
+  instead of 8-20; the controller's output, ``ClosedLoop.signals_and_derivative(...,
+  materialise=True)``). Barriers are identities, so the results are bitwise those of the
+  default compilation (tested); measured 1.27-1.40x on the vector field."""
 
 
 @functools.cache
-def batch_compiler_options() -> dict[str, object]:
-    """The XLA options `simulate_batch` compiles with: those of `CPU_COMPILER_OPTIONS` that
-    this jax and XLA know (each checked once, on a trivial program)."""
+def batch_compiler_options(platform: str = "cpu") -> dict[str, object]:
+    """The XLA options `simulate_batch` compiles with on devices of ``platform``: on CPUs,
+    those of `CPU_COMPILER_OPTIONS` that this jax and XLA know (each checked once, on a
+    trivial program); on other platforms none (the options were measured on CPUs only)."""
+    if platform != "cpu":
+        return {}
     known = {}
+    x = jax.device_put(np.float32(0.0), jax.devices("cpu")[0])
     for key, value in CPU_COMPILER_OPTIONS.items():
         try:
-            jax.jit(lambda x: x + 1, compiler_options={key: value})(0.0)
+            jax.jit(lambda x: x + 1, compiler_options={key: value})(x)
         except Exception:  # an option (or jit's compiler_options) this version does not have
             continue
         known[key] = value
@@ -237,9 +249,9 @@ _plain_run = eqx.filter_jit(_run)
 
 
 @functools.cache
-def _compiled_run():
-    """`_run` jitted with `batch_compiler_options`."""
-    options = batch_compiler_options()
+def _compiled_run(platform: str = "cpu"):
+    """`_run` jitted with `batch_compiler_options` of ``platform``."""
+    options = batch_compiler_options(platform)
     return eqx.filter_jit(_run, compiler_options=options) if options else _plain_run
 
 
@@ -516,7 +528,7 @@ def simulate_batch(
     part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((part, fixed)))
     # compiler options apply to a top-level compilation only (not inside another jit)
-    run = _plain_run if traced else _compiled_run()
+    run = _plain_run if traced else _compiled_run(devices[0].platform)
     return run(
         part,
         fixed,
