@@ -593,6 +593,37 @@ def _stored_peaks(stored, ts, cases: _Cases, sample, groups: Groups):
     return jnp.max(fold_peaks(no_peaks(counts.shape, samples.dtype), samples, counts), axis=0)
 
 
+def _stored_peaks_by_blocks(stored, ts, cases: _Cases, part_g, fixed, groups: Groups, L: int):
+    """`_stored_peaks` of `_peak_sample` on consecutive blocks of L of the G groups (a work
+    queue's pool, L its lanes; `jax.lax.map`): every block is evaluated at the shape of one
+    chunk, so a group's peaks are bitwise those of its chunk solved alone (XLA fuses, and so
+    rounds, a computation by its shape)."""
+    G, g = groups.count, groups.size
+    B = G // L
+    j_next, states = stored
+
+    def blocks(x, lead: int):
+        return x.reshape(B, x.shape[0] // B, *x.shape[1:]) if lead else x
+
+    def one(xs):
+        j, st, frozen, t_frozen, p = xs
+        grp = Groups(L, g)
+        sample = _at_group_values(_peak_sample, p, fixed, grp)
+        return _stored_peaks((j, st), ts, _Cases(frozen, t_frozen, None), sample, grp)
+
+    out = jax.lax.map(
+        one,
+        (
+            blocks(j_next, 1),
+            jax.tree.map(lambda x: blocks(x, 1), states),
+            cases.frozen.reshape(B, L * g),
+            cases.t_frozen.reshape(B, L * g),
+            jax.tree.map(lambda x: blocks(x, 1), part_g),
+        ),
+    )
+    return out.reshape(G * g, *out.shape[2:])
+
+
 def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
     """Initial state and bookkeeping; ``store``: the peaks are kept as stored states
     (`_store_samples`), else as running maxima (`fold_peaks`)."""
@@ -662,7 +693,12 @@ def _lean_continuous(
         lanes=lanes,
     )
     cases = out.extra
-    peaks = _stored_peaks(cases.peaks, ts, cases, sample, groups) if n_save else None
+    if not n_save:
+        peaks = None
+    elif lanes is None or lanes >= groups.count:
+        peaks = _stored_peaks(cases.peaks, ts, cases, sample, groups)
+    else:
+        peaks = _stored_peaks_by_blocks(cases.peaks, ts, cases, part_g, fixed, groups, lanes)
     return _lean_result(out, cases, groups, dtype, peaks)
 
 
