@@ -23,10 +23,8 @@ import html
 import io
 import json
 import math
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from ...io import atomic_write_bytes, atomic_write_text
@@ -267,12 +265,11 @@ def replay_worst(
         return {}
     size = chunk_size if chunk_size is not None and chunk_size >= len(cases) else None
     batch = sample_cases_at(distribution, cases, seed, size=size)
-
-    def replay(ctrl) -> list:
-        runs = []
-        for i in range(len(cases)):
-            scenario, vehicle, model = batch.case(i)
-            r = simulate(
+    out = {}
+    for i, case in enumerate(cases):
+        scenario, vehicle, model = batch.case(i)
+        out[case] = {
+            name: simulate(
                 ctrl,
                 scenario,
                 vehicle,
@@ -285,14 +282,9 @@ def replay_worst(
                 unmodeled=batch.unmodeled_case(i),
                 aerodynamics=batch.aerodynamics,
             )
-            runs.append(jax.block_until_ready(r))
-        return runs
-
-    # one thread per controller: each compiles its own program (XLA compiles without holding
-    # Python's lock), so the controllers' compilations overlap
-    with ThreadPoolExecutor(max_workers=max(1, len(controllers))) as pool:
-        done = dict(zip(controllers, pool.map(replay, controllers.values())))
-    return {case: {name: done[name][i] for name in controllers} for i, case in enumerate(cases)}
+            for name, ctrl in controllers.items()
+        }
+    return out
 
 
 # ---------------------------------------------------------------- documents
