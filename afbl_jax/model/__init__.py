@@ -43,7 +43,10 @@ from ._plant import hover_input as hover_input
 from ._plant import make_plant as make_plant
 from ._plant import plant_derivative as plant_derivative
 from ._rotations import body_rates_from_euler_rates as body_rates_from_euler_rates
+from ._rotations import cos_sin as cos_sin
 from ._rotations import euler_rates_from_body_rates as euler_rates_from_body_rates
+from ._rotations import rotate as rotate
+from ._rotations import rotate_transposed as rotate_transposed
 from ._rotations import rotation_matrix as rotation_matrix
 from ._rotations import thrust_direction as thrust_direction
 from ._sampling import NOISE_FIELDS as NOISE_FIELDS

@@ -35,6 +35,21 @@ def test_thrust_direction_is_third_column_of_zyx_rotation():
         np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-14)
 
 
+def test_rotations_as_sums_equal_matrix_products_and_cos_sin_is_exact():
+    rng = np.random.default_rng(3)
+    for phi, theta, psi in rng.uniform(-3.0, 3.0, size=(10, 3)):
+        r = A.model.rotation_matrix(phi, theta, psi)
+        v = jnp.asarray(rng.normal(size=3))
+        np.testing.assert_allclose(A.model.rotate(r, v), np.asarray(r) @ v, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(A.model.rotate_transposed(r, v), np.asarray(r).T @ v, atol=1e-15)
+        c, s = A.model.cos_sin(jnp.asarray(psi))
+        assert float(c) == float(jnp.cos(psi)) and float(s) == float(jnp.sin(psi))
+    # the barrier is an identity for transforms too: vmap and grad through it
+    angles = jnp.asarray(rng.uniform(-1.0, 1.0, size=5))
+    np.testing.assert_array_equal(jax.vmap(A.model.cos_sin)(angles)[1], jnp.sin(angles))
+    np.testing.assert_allclose(jax.grad(lambda a: A.model.cos_sin(a)[0])(0.3), -np.sin(0.3))
+
+
 def test_hover_is_an_equilibrium():
     state = jnp.zeros(12).at[0:3].set(jnp.array([1.0, -2.0, 3.0])).at[5].set(0.7)
     u = A.hover_input(P)
