@@ -602,8 +602,9 @@ def _stored_peaks_by_blocks(stored, ts, cases: _Cases, part_g, fixed, groups: Gr
     B = G // L
     j_next, states = stored
 
-    def blocks(x, lead: int):
-        return x.reshape(B, x.shape[0] // B, *x.shape[1:]) if lead else x
+    def blocks(x):
+        """(G, ...) -> (B, L, ...)."""
+        return x.reshape(B, L, *x.shape[1:])
 
     def one(xs):
         j, st, frozen, t_frozen, p = xs
@@ -614,11 +615,11 @@ def _stored_peaks_by_blocks(stored, ts, cases: _Cases, part_g, fixed, groups: Gr
     out = jax.lax.map(
         one,
         (
-            blocks(j_next, 1),
-            jax.tree.map(lambda x: blocks(x, 1), states),
+            blocks(j_next),
+            jax.tree.map(blocks, states),
             cases.frozen.reshape(B, L * g),
             cases.t_frozen.reshape(B, L * g),
-            jax.tree.map(lambda x: blocks(x, 1), part_g),
+            jax.tree.map(blocks, part_g),
         ),
     )
     return out.reshape(G * g, *out.shape[2:])
