@@ -108,6 +108,12 @@ def _recording(monkeypatch, on_call=None):
     return sizes
 
 
+# exactly two chunks on any device count: with several devices a sharded run rounds the chunk
+# size up to devices x group size (one chunk of 8 here), and these tests would wait forever on
+# a lock that only the second chunk's start releases
+TWO_CHUNKS = dict(chunk_size=CHUNK, shard=False, progress=False)
+
+
 def test_run_waits_for_a_chunk_another_run_holds(tmp_path, monkeypatch, fbl, dist):
     """Chunk 0 is locked by "another run": this run computes chunk 1 first, then waits for chunk
     0's lock and computes it itself (the other run stopped without writing it)."""
@@ -116,7 +122,7 @@ def test_run_waits_for_a_chunk_another_run_holds(tmp_path, monkeypatch, fbl, dis
     other = _runner._chunk_lock(out / "chunks", 0)
     assert other.acquire(blocking=False)
     sizes = _recording(monkeypatch, on_call=other.release)  # released once chunk 1 starts
-    table = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, out, chunk_size=CHUNK, progress=False)
+    table = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, out, **TWO_CHUNKS)
     assert sizes == [CHUNK, CHUNK]
     assert table_columns(table)["case"].tolist() == list(range(2 * CHUNK))
     (entry,) = mc.read_invocations(out)
@@ -127,7 +133,7 @@ def test_run_waits_for_a_chunk_another_run_holds(tmp_path, monkeypatch, fbl, dis
 def test_run_takes_a_chunk_another_run_finished(tmp_path, monkeypatch, fbl, dist):
     """While this run waits for chunk 0, "the other run" writes it: it is read, not computed,
     and the final table equals a run that computed everything."""
-    alone = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, chunk_size=CHUNK, progress=False)
+    alone = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, **TWO_CHUNKS)
     out = tmp_path / "shared"
     (out / "chunks").mkdir(parents=True)
     other = _runner._chunk_lock(out / "chunks", 0)
@@ -139,7 +145,7 @@ def test_run_takes_a_chunk_another_run_finished(tmp_path, monkeypatch, fbl, dist
         other.release()
 
     sizes = _recording(monkeypatch, on_call=finish_chunk_0)
-    table = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, out, chunk_size=CHUNK, progress=False)
+    table = mc.run_montecarlo(fbl, dist, 2 * CHUNK, SEED, out, **TWO_CHUNKS)
     assert sizes == [CHUNK]  # chunk 1 only
     assert table.equals(alone)
     assert mc.read_invocations(out)[0]["chunks_computed"] == 1
