@@ -85,6 +85,7 @@ from .scenario import paper_reference as paper_reference
 from .scenario import paper_scenario as paper_scenario
 from .scenario import stack_scenarios as stack_scenarios
 from .sim import COST_LAYOUT as COST_LAYOUT
+from .sim import SAVINGS as SAVINGS
 from .sim import SOLVERS as SOLVERS
 from .sim import STATUS_MESSAGES as STATUS_MESSAGES
 from .sim import STATUS_NAMES as STATUS_NAMES

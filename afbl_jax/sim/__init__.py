@@ -28,6 +28,7 @@ from ._lean import Groups as Groups
 from ._lean import LoopOutcome as LoopOutcome
 from ._lean import Step as Step
 from ._lean import lean_loop as lean_loop
+from ._solve import SAVINGS as SAVINGS
 from ._solve import SOLVERS as SOLVERS
 from ._solve import SimulationResult as SimulationResult
 from ._solve import closed_loop_of as closed_loop_of

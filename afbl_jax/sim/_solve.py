@@ -40,6 +40,10 @@ SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.D
 """Solvers selectable by name (Dopri5 is MATLAB's ode45 pair)."""
 
 
+SAVINGS = ("saveat", "dense")
+"""How `simulate` takes its samples (its ``saving`` argument)."""
+
+
 def get_solver(solver: str | diffrax.AbstractSolver) -> diffrax.AbstractSolver:
     """A diffrax solver instance from a name in `SOLVERS` (or the instance itself)."""
     if isinstance(solver, diffrax.AbstractSolver):
@@ -54,7 +58,8 @@ class SimulationResult(eqx.Module):
     """Output of `simulate`.
 
     Trajectory arrays have a leading time axis of length ``n_save`` (empty when n_save = 0);
-    samples after an early stop (divergence) are ``inf``, as diffrax fills them. With digital
+    samples after an early stop (divergence) are ``inf`` (states and signals; with continuous
+    control the times too, as diffrax fills them). With digital
     control the samples are linear interpolations of the states at the control samples (exact
     there) and ``u_command`` is the held command.
 
@@ -161,14 +166,34 @@ def _empty(tree, dtype=None):
     return jax.tree.map(lambda a: jnp.zeros((0, *a.shape), dtype or a.dtype), tree)
 
 
+def _pad_after(ts, t_final, tree):
+    """``tree`` (leading time axis) with the samples after ``t_final`` set to ``inf``."""
+    dead = ts > t_final
+    return jax.tree.map(
+        lambda a: jnp.where(dead.reshape(-1, *([1] * (a.ndim - 1))), jnp.inf, a), tree
+    )
+
+
 def _continuous(
-    loop: ClosedLoop, inputs: CaseInputs, solver, rtol, atol, n_save, max_steps, adjoint
+    loop: ClosedLoop,
+    inputs: CaseInputs,
+    solver,
+    rtol,
+    atol,
+    n_save,
+    max_steps,
+    adjoint,
+    dense=False,
 ) -> SimulationResult:
     dtype = jnp.result_type(float)
     sc = inputs.scenario
     y0 = loop.initial_state(inputs, dtype)
     ts = save_times(sc, n_save, dtype) if n_save else None
-    saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
+    if dense and n_save:
+        saveat = diffrax.SaveAt(t1=True, dense=True)
+    else:
+        saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
+        saveat = diffrax.SaveAt(subs=saves)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(loop.vector_field),
         solver,
@@ -177,22 +202,33 @@ def _continuous(
         None,
         y0,
         args=(inputs, None),
-        saveat=diffrax.SaveAt(subs=saves),
+        saveat=saveat,
         stepsize_controller=step_size_controller(rtol, atol, sc.jump_times()),
         max_steps=max_steps,
         event=diffrax.Event(lambda t, y, args, **kw: loop.diverged_at(t, y, args[0])),
         adjoint=adjoint,
         throw=False,
     )
-    final = jax.tree.map(lambda a: a[-1], sol.ys[0])
-    if n_save:
+    end_ts, end_ys = (sol.ts, sol.ys) if dense and n_save else (sol.ts[0], sol.ys[0])
+    final = jax.tree.map(lambda a: a[-1], end_ys)
+    t_final = end_ts[-1]
+
+    def signals_at(save_ts, traj):
+        return jax.vmap(lambda t, y: loop.signals_and_derivative(t, y, inputs)[0])(save_ts, traj)
+
+    if dense and n_save:
+        # the step's own interpolant (as SaveAt(ts) uses), evaluated after the solve
+        traj = jax.vmap(sol.evaluate)(jnp.minimum(ts, t_final))
+        save_ts, traj, signals = _pad_after(ts, t_final, (ts, traj, signals_at(ts, traj)))
+    elif n_save:
+        # diffrax pads the times and states after an early stop with inf; the signals too
         save_ts, traj = sol.ts[1], sol.ys[1]
-        signals = jax.vmap(lambda t, y: loop.signals_and_derivative(t, y, inputs)[0])(save_ts, traj)
+        signals = _pad_after(save_ts, t_final, signals_at(save_ts, traj))
     else:
         save_ts, traj = jnp.zeros((0,), dtype), _empty(y0)
         signals = _empty(loop.signals_and_derivative(sc.t0, y0, inputs)[0])
     status = status_from(sol.result, ~_finite(final))
-    return _result(save_ts, traj, signals, final, sol.ts[0][-1], status, _stats(sol))
+    return _result(save_ts, traj, signals, final, t_final, status, _stats(sol))
 
 
 def _digital(
@@ -261,11 +297,7 @@ def _digital(
             ts, traj, held
         )
         # after an early stop the trajectory is padded with inf, as in the continuous loop
-        dead = ts > t_final
-        traj, signals = jax.tree.map(
-            lambda a: jnp.where(dead.reshape(-1, *([1] * (a.ndim - 1))), jnp.inf, a),
-            (traj, signals),
-        )
+        traj, signals = _pad_after(ts, t_final, (traj, signals))
     else:
         ts, traj = jnp.zeros((0,), dtype), _empty(y0)
         signals = _empty(
@@ -277,9 +309,10 @@ def _digital(
 
 
 @eqx.filter_jit
-def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint):
-    solve = _digital if loop.digital else _continuous
-    return solve(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
+def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense=False):
+    if loop.digital:
+        return _digital(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
+    return _continuous(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense)
 
 
 def simulate(
@@ -297,6 +330,7 @@ def simulate(
     adjoint: diffrax.AbstractAdjoint | None = None,
     unmodeled: UnmodeledDynamics | None = None,
     aerodynamics: AbstractAerodynamics | str | None = None,
+    saving: str = "saveat",
 ) -> SimulationResult:
     """Simulate one closed-loop case.
 
@@ -319,6 +353,17 @@ def simulate(
             model with a continuous controller.
         aerodynamics: aerodynamic model, a name ("linear", "rotor_drag") or an
             `AbstractAerodynamics`; None (default): `LinearDrag` (coefficients in ``vehicle``).
+        saving: how the ``n_save`` samples of a continuous-control run are taken (`SAVINGS`).
+            "saveat" (default): diffrax's ``SaveAt(ts=...)`` inside the solve; lean in memory,
+            for batches and gradients. Under ``jax.jit`` diffrax checks those times with a
+            host callback, and JAX's persistent compilation cache never stores a program
+            that has one, so every new process compiles it again. "dense": diffrax's dense
+            output, evaluated at the same times after the solve with the same interpolant
+            of each step (the same samples to round-off); no host callback, so the compiled
+            program is cached like the ensemble programs; it holds the dense output of
+            ``max_steps`` steps (about 9 x the state size per step), for single solves such
+            as replays and figures. Digital control samples its own way (no callback) and
+            ignores the choice.
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
@@ -330,6 +375,8 @@ def simulate(
     check_positive("simulate", "atol", atol)
     if int(n_save) < 0 or int(max_steps) <= 0:
         raise ValueError(f"n_save must be >= 0 and max_steps > 0, got {n_save}, {max_steps}.")
+    if saving not in SAVINGS:
+        raise ValueError(f"saving must be one of {', '.join(SAVINGS)}, got {saving!r}.")
     return _simulate(
         loop,
         CaseInputs(scenario, vehicle, model, limits),
@@ -339,6 +386,7 @@ def simulate(
         int(n_save),
         int(max_steps),
         adjoint or diffrax.RecursiveCheckpointAdjoint(),
+        saving == "dense",
     )
 
 

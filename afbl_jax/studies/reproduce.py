@@ -124,6 +124,7 @@ def run_reproduction(config: ReproduceConfig | None = None) -> ReproductionResul
                 atol=cfg.atol,
                 n_save=cfg.n_save,
                 unmodeled=cfg.unmodeled,
+                saving="dense",
             )
 
         batched = jax.vmap(one)(batch)

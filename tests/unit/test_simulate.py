@@ -174,6 +174,50 @@ def test_divergence_and_solver_failure_are_reported_not_raised():
     assert np.isfinite(float(rb.ise_attitude[0]))
 
 
+def test_samples_after_an_early_stop_are_inf():
+    """States, signals and (continuous control) times after a divergence are inf, never
+    numbers computed from the padding."""
+    weak = A.QuadrotorParams().with_thrust_to_weight(1.2)
+    r = A.simulate(A.FBLPID(), A.paper_scenario("uncertain", "step"), weak, n_save=51)
+    assert int(r.status) == 1
+    dead = ~np.isfinite(np.asarray(r.ts))
+    assert 0 < dead.sum() < 50  # some samples before the stop, some after
+    for name in ("plant", "reference", "error", "u_command", "u_applied", "rotor_speeds"):
+        a = np.asarray(getattr(r, name))
+        assert np.all(np.isinf(a[dead])), name
+        assert np.all(np.isfinite(a[~dead])), name
+
+
+@pytest.mark.parametrize("controller", ["fbl", "afbl"])
+def test_dense_saving_gives_the_saveat_samples(controller):
+    """``saving="dense"`` evaluates the steps' own interpolants after the solve: the same
+    samples, end state, status and step counts as SaveAt(ts), finished and diverged runs."""
+    ctrl = A.make_controller(controller)
+    sc = A.paper_scenario("uncertain", "step")
+    for vehicle in (A.QuadrotorParams(), A.QuadrotorParams().with_thrust_to_weight(1.2)):
+        a = A.simulate(ctrl, sc, vehicle, n_save=101)
+        b = A.simulate(ctrl, sc, vehicle, n_save=101, saving="dense")
+        assert int(a.status) == int(b.status)
+        assert int(a.num_steps) == int(b.num_steps)
+        assert tree_allclose(a, b, rtol=1e-12, atol=1e-12)
+    assert int(a.status) == 1  # the weak vehicle diverged: padding compared too
+
+
+def test_dense_saving_compiles_without_host_callbacks():
+    """The reason for ``saving="dense"``: diffrax checks SaveAt(ts) with host callbacks, which
+    keep JAX's persistent compilation cache from storing the program; dense output has none."""
+    sc = A.paper_scenario("uncertain", "step")
+
+    def program(saving):
+        run = jax.jit(lambda s: A.simulate(A.FBLPID(), s, n_save=11, saving=saving))
+        return run.lower(sc).as_text()
+
+    assert "callback" in program("saveat")
+    assert "callback" not in program("dense")
+    with pytest.raises(ValueError, match="saving must be one of saveat, dense"):
+        A.simulate(A.FBLPID(), sc, n_save=11, saving="steps")
+
+
 def test_saturation_limits_rotor_speeds_in_closed_loop():
     vehicle = A.QuadrotorParams().with_thrust_to_weight(1.6)
     r = A.simulate(A.AFBL(), A.paper_scenario("uncertain", "step"), vehicle, n_save=2001)

@@ -281,6 +281,7 @@ def replay_worst(
                 max_steps=settings.max_steps,
                 unmodeled=batch.unmodeled_case(i),
                 aerodynamics=batch.aerodynamics,
+                saving="dense",  # no host callback: the compiled replay is cached
             )
             for name, ctrl in controllers.items()
         }

@@ -160,6 +160,7 @@ def _replay(problem: MarginProblem, u):
         atol=problem.atol,
         n_save=problem.n_save,
         aerodynamics=batch.aerodynamics,
+        saving="dense",  # no host callback: the compiled replay is cached
     )
 
 
