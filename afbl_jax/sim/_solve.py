@@ -189,7 +189,8 @@ def _continuous(
     sc = inputs.scenario
     y0 = loop.initial_state(inputs, dtype)
     ts = save_times(sc, n_save, dtype) if n_save else None
-    if dense and n_save:
+    dense = bool(dense and n_save)  # static: without samples there is nothing to evaluate
+    if dense:
         saveat = diffrax.SaveAt(t1=True, dense=True)
     else:
         saves = [diffrax.SubSaveAt(t1=True)] + ([diffrax.SubSaveAt(ts=ts)] if n_save else [])
@@ -209,14 +210,14 @@ def _continuous(
         adjoint=adjoint,
         throw=False,
     )
-    end_ts, end_ys = (sol.ts, sol.ys) if dense and n_save else (sol.ts[0], sol.ys[0])
+    end_ts, end_ys = (sol.ts, sol.ys) if dense else (sol.ts[0], sol.ys[0])
     final = jax.tree.map(lambda a: a[-1], end_ys)
     t_final = end_ts[-1]
 
     def signals_at(save_ts, traj):
         return jax.vmap(lambda t, y: loop.signals_and_derivative(t, y, inputs)[0])(save_ts, traj)
 
-    if dense and n_save:
+    if dense:
         # the step's own interpolant (as SaveAt(ts) uses), evaluated after the solve
         traj = jax.vmap(sol.evaluate)(jnp.minimum(ts, t_final))
         save_ts, traj, signals = _pad_after(ts, t_final, (ts, traj, signals_at(ts, traj)))
