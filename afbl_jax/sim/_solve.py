@@ -183,7 +183,7 @@ def _continuous(
     n_save,
     max_steps,
     adjoint,
-    dense=False,
+    dense: bool,
 ) -> SimulationResult:
     dtype = jnp.result_type(float)
     sc = inputs.scenario
@@ -310,7 +310,7 @@ def _digital(
 
 
 @eqx.filter_jit
-def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense=False):
+def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense):
     if loop.digital:
         return _digital(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
     return _continuous(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense)
