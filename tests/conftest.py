@@ -1,8 +1,24 @@
 import gc
 import os
+import shutil
+import tempfile
 
-import jax
-import pytest
+# One persistent compilation cache for the whole test session, made by the first pytest
+# process (xdist's controller) before JAX is imported and inherited through the environment by
+# its workers, the `afbl` subprocesses and the notebook kernels, so that a program compiled by
+# one of them is loaded by the others; every program is kept, however fast it compiled. Removed
+# when that process ends. JAX's compile event fires for cache loads too, so the compilation
+# counts of the tests (no recompilation in a loop) mean the same with it.
+_SESSION_CACHE = "AFBL_TEST_SESSION_CACHE"
+_OWNS_SESSION_CACHE = _SESSION_CACHE not in os.environ
+if _OWNS_SESSION_CACHE:
+    os.environ[_SESSION_CACHE] = tempfile.mkdtemp(prefix="afbl-test-xla-")
+os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[_SESSION_CACHE]
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # JAX's default devices (one on a CPU) in every test process, whichever test runs first: an
@@ -10,8 +26,14 @@ jax.config.update("jax_enable_x64", True)
 # (`configure_cpu_devices`) for every later test of that worker; several devices are tested in
 # subprocesses
 jax.devices()
-# the compilation counts of the tests need real compilations, not loads from a cache
+# the commands' own cache folder (`AFBL_COMPILATION_CACHE`) stays off: the session cache above
+# is the only one, and nothing is written to the user's cache folder
 os.environ["AFBL_COMPILATION_CACHE"] = "off"
+
+
+def pytest_unconfigure(config):
+    if _OWNS_SESSION_CACHE:
+        shutil.rmtree(os.environ[_SESSION_CACHE], ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -76,6 +76,7 @@ def test_cache_off_and_unusable_folder(tmp_path, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("")
     env = {**os.environ, "AFBL_COMPILATION_CACHE": str(blocker / "xla"), "PYTHONPATH": str(ROOT)}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # a cache set by JAX's own variable wins
     done = subprocess.run(
         [sys.executable, "-c", "from afbl_jax.cli import main; main(['reproduce', '--help'])"],
         env=env,
