@@ -38,11 +38,21 @@ print(json.dumps({"folder": str(folder), **counts,
 """
 
 
-def _run(env_extra: dict) -> dict:
+def _env(env_extra: dict) -> dict:
+    """The subprocess's environment: this one with ``env_extra``, without a cache folder set by
+    JAX's own variable (it wins over `configure_compilation_cache`, which is under test)."""
     env = {**os.environ, **env_extra, "PYTHONPATH": str(ROOT)}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    return env
+
+
+def _run(env_extra: dict) -> dict:
     out = subprocess.run(
-        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
+        [sys.executable, "-c", SCRIPT],
+        env=_env(env_extra),
+        capture_output=True,
+        text=True,
+        check=True,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -75,11 +85,9 @@ def test_cache_off_and_unusable_folder(tmp_path, monkeypatch):
     # a folder that cannot be created: one warning line, the command still runs
     blocker = tmp_path / "file"
     blocker.write_text("")
-    env = {**os.environ, "AFBL_COMPILATION_CACHE": str(blocker / "xla"), "PYTHONPATH": str(ROOT)}
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # a cache set by JAX's own variable wins
     done = subprocess.run(
         [sys.executable, "-c", "from afbl_jax.cli import main; main(['reproduce', '--help'])"],
-        env=env,
+        env=_env({"AFBL_COMPILATION_CACHE": str(blocker / "xla")}),
         capture_output=True,
         text=True,
     )
