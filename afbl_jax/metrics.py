@@ -6,7 +6,15 @@
 - ``peak_altitude_error`` [m]: max over the samples of |e_z|;
 - ``peak_saturation`` [-]: max over the samples and the four rotors of commanded rotor speed /
   omega_max (commanded speed = sqrt of the mixer's commanded Omega^2 through the controller's
-  model, clipped at 0); >= 1 means the command hit the rotor-speed limit.
+  model, clipped at 0); >= 1 means the command hit the rotor-speed limit;
+- ``ise_position`` [m^2 s], ``peak_position_error`` [m]: with a position loop, the integral of
+  |p_ref - p|^2 and the largest |p_ref - p| over the samples (horizontal position x, y); NaN
+  without one (the attitude errors are then taken against the position loop's commanded roll
+  and pitch, `afbl_jax.sim.ClosedLoop.reference_values`);
+- ``failure_cause``: what ended a run that failed (`FAILURE_CAUSES`: none, attitude, altitude,
+  non_finite, solver), from its end state; ``final_saturation`` [-]: the commanded rotor
+  saturation (as ``peak_saturation``) on the end state, >= 1 when the rotors were commanded past
+  their limit as the run ended.
 
 Peaks are taken at ``n_save`` equally spaced times over [t0, t1] (with digital control: the
 states linearly interpolated between control samples, the held command), counting only the
@@ -42,10 +50,14 @@ from .model import QuadrotorParams, rotor_speeds_sq_from_inputs
 METRIC_NAMES: tuple[str, ...] = (
     "ise_attitude",
     "ise_altitude",
+    "ise_position",
     "peak_attitude_error",
     "peak_altitude_error",
+    "peak_position_error",
     "peak_saturation",
     "failure_margin",
+    "failure_cause",
+    "final_saturation",
     "solver_steps",
     "t_final",
     "status",
@@ -65,6 +77,8 @@ class BatchMetrics(eqx.Module):
         num_rejected_steps: rejected steps (shared count for an ensemble).
         peak_attitude_error [rad], peak_altitude_error [m], peak_saturation [-]: maxima over
             the samples before the run's end (module docstring); NaN without samples.
+        ise_position [m^2 s], peak_position_error [m]: with a position loop (else NaN).
+        failure_cause: `FAILURE_CAUSES` codes; final_saturation [-] (module docstring).
     """
 
     ise_attitude: Float[Array, " N"]
@@ -78,6 +92,10 @@ class BatchMetrics(eqx.Module):
     peak_attitude_error: Float[Array, " N"]
     peak_altitude_error: Float[Array, " N"]
     peak_saturation: Float[Array, " N"]
+    ise_position: Float[Array, " N"]
+    peak_position_error: Float[Array, " N"]
+    failure_cause: Int[Array, " N"]
+    final_saturation: Float[Array, " N"]
 
     @property
     def ok(self) -> Array:
@@ -88,6 +106,14 @@ class BatchMetrics(eqx.Module):
         """`failure_margin` at the default failure limits: > 0 exactly when the run failed."""
         return failure_margin(self)
 
+
+FAILURE_CAUSES: tuple[str, ...] = ("none", "attitude", "altitude", "non_finite", "solver")
+"""What ended a failed run (``failure_cause`` codes 0-4): none (it finished), the attitude or
+the altitude divergence limit (the one crossed by the most), a non-finite state, or the solver
+(out of steps, step size collapsed)."""
+PEAK_LAYOUT: tuple[str, ...] = ("attitude_error", "altitude_error", "saturation", "position_error")
+"""The quantities of one peak sample (`sample_peaks`), in order."""
+N_PEAKS = len(PEAK_LAYOUT)
 
 FAILURE_ATTITUDE = 1.2
 """Default failure limit on the attitude error peak [rad] (= the divergence limit)."""
@@ -150,22 +176,30 @@ def sample_peaks(
     u_command: Float[Array, 4],
     vehicle: QuadrotorParams,
     model: QuadrotorParams,
+    position_error: Float[Array, 2] | None = None,
 ) -> Array:
-    """The three quantities whose maxima over the samples are a run's peaks, shape (3,):
-    max(|e_phi|, |e_theta|, |e_psi|) [rad], |e_z| [m], and max over the rotors of commanded rotor
-    speed / omega_max [-]."""
+    """The quantities whose maxima over the samples are a run's peaks, shape (4,)
+    (`PEAK_LAYOUT`): max(|e_phi|, |e_theta|, |e_psi|) [rad], |e_z| [m], max over the rotors of
+    commanded rotor speed / omega_max [-], and |p_ref - p| [m] (NaN without
+    ``position_error``: no position loop)."""
     err = jnp.abs(error)
     w_cmd = rotor_speeds_sq_from_inputs(model, u_command)
     w_max = jnp.maximum(jnp.maximum(w_cmd[0], w_cmd[1]), jnp.maximum(w_cmd[2], w_cmd[3]))
     sat = jnp.sqrt(jnp.maximum(w_max, 0.0)) / vehicle.omega_max
+    if position_error is None:
+        pos = jnp.full_like(sat, jnp.nan)
+    else:  # |p_ref - p| with a zero (not NaN) gradient where it is 0 (a trimmed start)
+        n2 = position_error[0] ** 2 + position_error[1] ** 2
+        positive = n2 > 0
+        pos = jnp.where(positive, jnp.sqrt(jnp.where(positive, n2, 1.0)), 0.0)
     # maxima over 3 and 4 entries as elementwise maxima: no reduction, which XLA's CPU backend
     # otherwise emits as one small reduction per case and sample
-    return jnp.stack([jnp.maximum(jnp.maximum(err[0], err[1]), err[2]), err[3], sat])
+    return jnp.stack([jnp.maximum(jnp.maximum(err[0], err[1]), err[2]), err[3], sat, pos])
 
 
 def peaks_over_samples(ts, samples, t_final) -> Array:
-    """Max over the samples at ``ts`` (shape (n,)) with ts <= t_final of ``samples`` (n, 3);
-    non-finite samples are skipped; NaN where no sample counts. Returns shape (3,)."""
+    """Max over the samples at ``ts`` (shape (n,)) with ts <= t_final of ``samples`` (n, P);
+    non-finite samples are skipped; NaN where no sample counts. Returns shape (P,)."""
     valid = (ts <= t_final)[:, None] & jnp.isfinite(samples)
     peak = jnp.max(jnp.where(valid, samples, -jnp.inf), axis=0)
     return jnp.where(jnp.any(valid, axis=0), peak, jnp.nan)
@@ -173,7 +207,7 @@ def peaks_over_samples(ts, samples, t_final) -> Array:
 
 def fold_peaks(peaks, samples, counts) -> Array:
     """One sample folded into running peaks (`peaks_over_samples` one sample at a time, for
-    solvers that sample inside their loop): ``peaks`` and ``samples`` (..., 3), ``counts``
+    solvers that sample inside their loop): ``peaks`` and ``samples`` (..., P), ``counts``
     (...,) whether the sample is at or before the run's end. Start from -inf (`no_peaks`);
     non-finite samples are skipped; `finish_peaks` gives NaN where no sample counted."""
     use = counts[..., None] & jnp.isfinite(samples)
@@ -181,8 +215,8 @@ def fold_peaks(peaks, samples, counts) -> Array:
 
 
 def no_peaks(shape, dtype) -> Array:
-    """Running peaks before any sample: -inf, shape (*shape, 3) (`fold_peaks`)."""
-    return jnp.full((*shape, 3), -jnp.inf, dtype)
+    """Running peaks before any sample: -inf, shape (*shape, `N_PEAKS`) (`fold_peaks`)."""
+    return jnp.full((*shape, N_PEAKS), -jnp.inf, dtype)
 
 
 def finish_peaks(peaks) -> Array:
@@ -193,13 +227,16 @@ def finish_peaks(peaks) -> Array:
 def metrics_from_result(result, vehicle: QuadrotorParams, model: QuadrotorParams) -> BatchMetrics:
     """`BatchMetrics` (unbatched) of one `afbl_jax.simulate` result; peaks from its saved
     samples (NaN when it saved none)."""
+    nan = jnp.full((), jnp.nan, result.t_final.dtype)
     if result.ts.shape[0]:
-        samples = jax.vmap(lambda e, u: sample_peaks(e, u, vehicle, model))(
-            result.error, result.u_command
-        )
+        pos = result.position_error
+        samples = jax.vmap(
+            lambda e, u, p: sample_peaks(e, u, vehicle, model, p),
+            in_axes=(0, 0, None if pos is None else 0),
+        )(result.error, result.u_command, pos)
         peaks = peaks_over_samples(result.ts, samples, result.t_final)
     else:
-        peaks = jnp.full((3,), jnp.nan, result.t_final.dtype)
+        peaks = jnp.full((N_PEAKS,), jnp.nan, result.t_final.dtype)
     return BatchMetrics(
         result.ise_attitude,
         result.ise_altitude,
@@ -209,7 +246,13 @@ def metrics_from_result(result, vehicle: QuadrotorParams, model: QuadrotorParams
         result.t_final,
         result.num_steps,
         result.num_rejected_steps,
-        *peaks,
+        peaks[0],
+        peaks[1],
+        peaks[2],
+        nan if result.ise_position is None else result.ise_position,
+        peaks[3],
+        result.failure_cause,
+        result.final_saturation,
     )
 
 
@@ -218,10 +261,14 @@ def metric_columns(m: BatchMetrics) -> dict[str, Array]:
     return {
         "ise_attitude": m.ise_attitude,
         "ise_altitude": m.ise_altitude,
+        "ise_position": m.ise_position,
         "peak_attitude_error": m.peak_attitude_error,
         "peak_altitude_error": m.peak_altitude_error,
+        "peak_position_error": m.peak_position_error,
         "peak_saturation": m.peak_saturation,
         "failure_margin": m.failure_margin,
+        "failure_cause": m.failure_cause,
+        "final_saturation": m.final_saturation,
         "solver_steps": m.num_steps,
         "t_final": m.t_final,
         "status": m.status,

@@ -1,5 +1,6 @@
 """The vehicle and its controllers: parameters, rotations, plants, mixer, actuators,
-aerodynamics, controllers and their sampling (continuous | digital)."""
+aerodynamics, trim and flight envelope, the inner controllers, the outer position loop and
+their sampling (continuous | digital)."""
 
 from ._actuators import AbstractActuators as AbstractActuators
 from ._actuators import FirstOrderRotors as FirstOrderRotors
@@ -42,6 +43,17 @@ from ._plant import full_plant_derivative as full_plant_derivative
 from ._plant import hover_input as hover_input
 from ._plant import make_plant as make_plant
 from ._plant import plant_derivative as plant_derivative
+from ._plant import virtual_input_for as virtual_input_for
+from ._position import DEFAULT_FILTER_FREQUENCY as DEFAULT_FILTER_FREQUENCY
+from ._position import DEFAULT_POSITION_BANDWIDTH as DEFAULT_POSITION_BANDWIDTH
+from ._position import DEFAULT_TILT_LIMIT as DEFAULT_TILT_LIMIT
+from ._position import POSITION_LOOP_LAYOUT as POSITION_LOOP_LAYOUT
+from ._position import POSITION_LOOP_SIZE as POSITION_LOOP_SIZE
+from ._position import AttitudeCommand as AttitudeCommand
+from ._position import PositionHold as PositionHold
+from ._position import PositionSample as PositionSample
+from ._position import acceleration_for_attitude as acceleration_for_attitude
+from ._position import attitude_for_acceleration as attitude_for_acceleration
 from ._rotations import body_rates_from_euler_rates as body_rates_from_euler_rates
 from ._rotations import cos_sin as cos_sin
 from ._rotations import euler_rates_from_body_rates as euler_rates_from_body_rates
@@ -54,6 +66,14 @@ from ._sampling import AbstractSampling as AbstractSampling
 from ._sampling import ContinuousControl as ContinuousControl
 from ._sampling import DigitalControl as DigitalControl
 from ._sampling import measurement_noise as measurement_noise
+from ._trim import ENVELOPE_CAUSES as ENVELOPE_CAUSES
+from ._trim import TRIM_RESIDUAL as TRIM_RESIDUAL
+from ._trim import EnvelopeLimits as EnvelopeLimits
+from ._trim import Trim as Trim
+from ._trim import TrimSolution as TrimSolution
+from ._trim import combine_margins as combine_margins
+from ._trim import envelope_margin as envelope_margin
+from ._trim import solve_trim as solve_trim
 from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics
 from ._unmodeled import measure as measure
 from ._unmodeled import stack_unmodeled as stack_unmodeled

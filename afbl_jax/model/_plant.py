@@ -255,6 +255,20 @@ def feedback_linearize(params: QuadrotorParams, state: PlantState, v: Vec4) -> V
     return jnp.stack([u1, u2, u3, u4])
 
 
+def virtual_input_for(params: QuadrotorParams, state: PlantState, u: Vec4) -> Vec4:
+    """Inverse of `feedback_linearize`: the v (phidd, thetadd, psidd, zdd targets) for which
+    ``feedback_linearize(params, state, v)`` gives the inputs ``u`` on a paper-layout
+    ``state``."""
+    phi, theta = state[3], state[4]
+    phid, thetad, psid = state[9], state[10], state[11]
+    Ix, Iy, Iz, arm = params.Ix, params.Iy, params.Iz, params.arm_length
+    v0 = arm * u[0] / Ix + thetad * psid * (Iy - Iz) / Ix
+    v1 = arm * u[1] / Iy + phid * psid * (Iz - Ix) / Iy
+    v2 = u[2] / Iz + phid * thetad * (Ix - Iy) / Iz
+    v3 = u[3] * cos_sin(phi)[0] * cos_sin(theta)[0] / params.m - params.g
+    return jnp.stack([v0, v1, v2, v3])
+
+
 def hover_input(params: QuadrotorParams, mass: Scalar | None = None) -> Vec4:
     """Inputs (0, 0, 0, m g) that hold a level vehicle of `mass` [kg] (default m) still."""
     mass = params.m if mass is None else mass

@@ -87,9 +87,9 @@ def figure_ise_vs_payload(cols):
 
 
 def figure_heatmaps(cols, n_bins: int = 6):
-    """Per controller: failure probability (top) and median ISE attitude of the ok runs
-    (bottom) over payload x gust-speed bins. White cells hold no case (top), or no ok run
-    (bottom); the figure title says so."""
+    """Per controller: failure probability of the flyable cases (top) and median ISE attitude
+    of the ok runs (bottom) over payload x gust-speed bins. White cells hold no flyable case
+    (top), or no ok run (bottom); the figure title says so."""
     import matplotlib.pyplot as plt
 
     names = controller_names(cols)
@@ -107,14 +107,14 @@ def figure_heatmaps(cols, n_bins: int = 6):
         st, ise = cols["status"][m], cols["ise_attitude"][m]
         for a in range(n_bins):
             for b in range(n_bins):
-                sel = (ip == a) & (ig == b)
+                sel = (ip == a) & (ig == b) & (st != "outside_envelope")
                 if np.any(sel):
-                    fail[b, a] = np.mean(st[sel] != "ok")
+                    fail[b, a] = np.mean(np.isin(st[sel], ("diverged", "solver_failed")))
                     okv = ise[sel & (st == "ok")]
                     med[b, a] = np.median(okv) if len(okv) else np.nan
         for i, (data, title, unit) in enumerate(
             (
-                (fail, "failure probability", "failure probability [-]"),
+                (fail, "P(failure | flyable)", "failure probability [-]"),
                 (med, "median ISE attitude (ok runs)", "median " + ISE_LABELS["ise_attitude"]),
             )
         ):
@@ -136,8 +136,8 @@ def figure_heatmaps(cols, n_bins: int = 6):
             ax.set_xlabel("payload fraction p [-]")
             ax.set_ylabel("gust speed [m/s]")
     fig.suptitle(
-        "payload x gust speed; white cells: no case in the bin (top), no successful run in "
-        "the bin (bottom)",
+        "payload x gust speed; white cells: no flyable case in the bin (top), no successful "
+        "run in the bin (bottom)",
         fontsize=10,
     )
     return fig
@@ -192,4 +192,50 @@ def figure_worst(replays: dict):
     axes[-1, 0].set_xlabel("t [s]")
     axes[-1, 1].set_xlabel("t [s]")
     fig.suptitle("five worst cases, re-simulated")
+    return fig
+
+
+FAILURE_MARKERS = {"attitude": "o", "altitude": "s", "non_finite": "X", "solver": "D"}
+
+
+def figure_failure_anatomy(cols):
+    """Failure time by cause: one row per controller, each failed flyable run at its failure
+    time [s] on the line of its cause (attitude or altitude limit, non-finite state, solver),
+    filled where its rotors were commanded past their limit as it ended (final saturation
+    >= 1), hollow otherwise."""
+    import matplotlib.pyplot as plt
+
+    names = controller_names(cols)
+    causes = list(FAILURE_MARKERS)
+    fig, axes = plt.subplots(
+        len(names), 1, figsize=(8, 1.2 + 1.1 * len(names)), squeeze=False, layout="constrained"
+    )
+    failed = np.isin(cols["status"], ("diverged", "solver_failed"))
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        m = failed & (cols["controller"] == name)
+        ax.set_title(f"{name}: {int(np.sum(m))} failed flyable runs", fontsize=9)
+        if not np.any(m):
+            _say_empty(ax, "no failed run")
+            continue
+        t = np.asarray(cols["t_final"], dtype=float)[m]
+        cause = np.asarray(cols["failure_cause"])[m]
+        sat = np.asarray(cols["final_saturation"], dtype=float)[m] >= 1.0
+        for i, c in enumerate(causes):
+            for filled in (True, False):
+                sel = (cause == c) & (sat == filled)
+                if not np.any(sel):
+                    continue
+                ax.scatter(
+                    t[sel],
+                    np.full(int(np.sum(sel)), i),
+                    marker=FAILURE_MARKERS[c],
+                    facecolors=f"C{i}" if filled else "none",
+                    edgecolors=f"C{i}",
+                    label=f"{c}, {'saturated' if filled else 'not saturated'}",
+                )
+        ax.set_yticks(range(len(causes)), causes, fontsize=8)
+        ax.set_ylim(-0.5, len(causes) - 0.5)
+        ax.set_xlabel("failure time [s]")
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.suptitle("failure time by cause (filled: rotors commanded past their limit as it ended)")
     return fig

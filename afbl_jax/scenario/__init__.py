@@ -1,20 +1,25 @@
-"""What the vehicle is asked to do and what happens to it: references, disturbance pulses,
-wind (gusts, Dryden turbulence), payload, initial state, time span, and the paper's canonical
-scenarios."""
+"""What the vehicle is asked to do and what happens to it: references (attitude and altitude;
+horizontal position for a position loop), disturbance pulses, wind (gusts, Dryden turbulence),
+payload, initial state (a trimmed start), time span, and the paper's canonical scenarios."""
 
 from ._disturbances import PulseDisturbance as PulseDisturbance
 from ._disturbances import no_disturbance as no_disturbance
+from ._missions import MISSION_PROFILES as MISSION_PROFILES
+from ._missions import mission_reference as mission_reference
 from ._paper import PAPER_INITIAL_ATTITUDE as PAPER_INITIAL_ATTITUDE
 from ._paper import PROFILES as PROFILES
 from ._paper import SCENARIO_KINDS as SCENARIO_KINDS
 from ._paper import paper_disturbance as paper_disturbance
 from ._paper import paper_reference as paper_reference
 from ._paper import paper_scenario as paper_scenario
+from ._references import PositionReference as PositionReference
 from ._references import Reference as Reference
+from ._references import make_position_reference as make_position_reference
 from ._references import make_reference as make_reference
 from ._references import min_jerk_blend as min_jerk_blend
 from ._scenario import Scenario as Scenario
 from ._scenario import stack_scenarios as stack_scenarios
+from ._trimmed import trim_scenario as trim_scenario
 from ._wind import KNOT as KNOT
 from ._wind import ROUGHNESS_LENGTH as ROUGHNESS_LENGTH
 from ._wind import TURBULENCE_INTENSITIES as TURBULENCE_INTENSITIES

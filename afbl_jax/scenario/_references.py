@@ -10,6 +10,9 @@ psi [rad], z [m]) is
 where blend(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 for tau in [0, 1] (0 before, 1 after) is the
 minimum-jerk step: continuous position, velocity and acceleration, so r, rd and rdd are all
 continuous and only the jerk jumps at a blend's start and end.
+
+A `PositionReference` is the same construction on the horizontal position (x, y) [m], the
+reference of the position loop (`afbl_jax.model.PositionHold`).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import numpy as np
 
 from .._typing import Array, Float
 from .._validation import as_float, check_finite, check_last_dim, check_positive
-from ..model import ReferenceSample
+from ..model import PositionSample, ReferenceSample
 
 
 def min_jerk_blend(tau):
@@ -31,6 +34,21 @@ def min_jerk_blend(tau):
     ds = jnp.where(inside, 30.0 * tc**2 * (1.0 - tc) ** 2, 0.0)
     dds = jnp.where(inside, 60.0 * tc * (1.0 - tc) * (1.0 - 2.0 * tc), 0.0)
     return s, ds, dds
+
+
+def _evaluate(ref, t):
+    """(r, rd, rdd) of a sum of minimum-jerk steps and a sinusoid per channel at time t [s]."""
+    tau = (t - ref.step_start) / ref.step_duration
+    s, ds, dds = min_jerk_blend(tau)
+    r = ref.offset + jnp.sum(ref.step_size * s, axis=-1)
+    rd = jnp.sum(ref.step_size * ds / ref.step_duration, axis=-1)
+    rdd = jnp.sum(ref.step_size * dds / ref.step_duration**2, axis=-1)
+    wt = ref.sine_frequency * t + ref.sine_phase
+    a, w = ref.sine_amplitude, ref.sine_frequency
+    r = r + a * jnp.sin(wt)
+    rd = rd + a * w * jnp.cos(wt)
+    rdd = rdd - a * w**2 * jnp.sin(wt)
+    return r, rd, rdd
 
 
 class Reference(eqx.Module):
@@ -71,17 +89,7 @@ class Reference(eqx.Module):
 
     def __call__(self, t) -> ReferenceSample:
         """Reference (r, rd, rdd) at time t [s]."""
-        tau = (t - self.step_start) / self.step_duration
-        s, ds, dds = min_jerk_blend(tau)
-        r = self.offset + jnp.sum(self.step_size * s, axis=-1)
-        rd = jnp.sum(self.step_size * ds / self.step_duration, axis=-1)
-        rdd = jnp.sum(self.step_size * dds / self.step_duration**2, axis=-1)
-        wt = self.sine_frequency * t + self.sine_phase
-        a, w = self.sine_amplitude, self.sine_frequency
-        r = r + a * jnp.sin(wt)
-        rd = rd + a * w * jnp.cos(wt)
-        rdd = rdd - a * w**2 * jnp.sin(wt)
-        return ReferenceSample(r, rd, rdd)
+        return ReferenceSample(*_evaluate(self, t))
 
     def kink_times(self) -> Array:
         """Start and end of every blend [s]: where the reference's jerk jumps."""
@@ -135,3 +143,85 @@ def make_reference(
     freq = np.array([sines.get(c, (0.0, 0.0, 0.0))[1] for c in names])
     phase = np.array([sines.get(c, (0.0, 0.0, 0.0))[2] for c in names])
     return Reference(base, start, size, np.full((4, n), float(step_duration)), amp, freq, phase)
+
+
+class PositionReference(eqx.Module):
+    """Horizontal position reference (x, y) [m] for the position loop
+    (`afbl_jax.model.PositionHold`): minimum-jerk steps and a sinusoid per channel, as
+    `Reference` (fields shaped (2,) and (2, S), channel order x, y; units m, s, rad/s)."""
+
+    offset: Float[Array, 2] = eqx.field(converter=as_float)
+    step_start: Float[Array, "2 S"] = eqx.field(converter=as_float)
+    step_size: Float[Array, "2 S"] = eqx.field(converter=as_float)
+    step_duration: Float[Array, "2 S"] = eqx.field(converter=as_float)
+    sine_amplitude: Float[Array, 2] = eqx.field(converter=as_float)
+    sine_frequency: Float[Array, 2] = eqx.field(converter=as_float)
+    sine_phase: Float[Array, 2] = eqx.field(converter=as_float)
+
+    def __check_init__(self):
+        owner = type(self).__name__
+        for name in ("offset", "sine_amplitude", "sine_frequency", "sine_phase"):
+            if np.shape(getattr(self, name))[-1:] != (2,):
+                raise ValueError(
+                    f"{owner}.{name} must have a last dimension of 2 (x, y), got shape "
+                    f"{np.shape(getattr(self, name))}."
+                )
+            check_finite(owner, name, getattr(self, name))
+        shapes = {np.shape(getattr(self, n)) for n in ("step_start", "step_size", "step_duration")}
+        if len(shapes) != 1 or len(next(iter(shapes))) < 2 or next(iter(shapes))[-2] != 2:
+            raise ValueError(
+                f"{owner}: step_start, step_size and step_duration must share one shape "
+                f"(..., 2, S), got {sorted(shapes)}."
+            )
+        check_finite(owner, "step_start", self.step_start)
+        check_finite(owner, "step_size", self.step_size)
+        check_positive(owner, "step_duration", self.step_duration)
+
+    def __call__(self, t) -> PositionSample:
+        """Position reference (r [m], rd [m/s], rdd [m/s^2]) at time t [s]."""
+        return PositionSample(*_evaluate(self, t))
+
+    def kink_times(self) -> Array:
+        """Start and end of every blend [s]: where the reference's jerk jumps."""
+        starts = self.step_start.reshape(-1)
+        return jnp.concatenate([starts, starts + self.step_duration.reshape(-1)])
+
+
+def make_position_reference(
+    steps: dict[str, list[tuple[float, float, float]]] | None = None,
+    sines: dict[str, tuple[float, float, float]] | None = None,
+    offset: dict[str, float] | None = None,
+    step_duration: float = 1.0,
+    max_steps: int | None = None,
+) -> PositionReference:
+    """Build a `PositionReference` from readable pieces, as `make_reference` (channels "x",
+    "y"; steps (t0 [s], a [m], b [m]), sines (amplitude [m], frequency [rad/s], phase [rad]),
+    offsets [m], blend duration [s])."""
+    names = ("x", "y")
+    steps, sines, offset = steps or {}, sines or {}, offset or {}
+    for key in (*steps, *sines, *offset):
+        if key not in names:
+            raise ValueError(f"unknown position channel {key!r}; allowed: {', '.join(names)}.")
+    n = max([len(v) for v in steps.values()] + [0]) if max_steps is None else max_steps
+    n = max(n, 1)
+    start = np.zeros((2, n))
+    size = np.zeros((2, n))
+    base = np.array([float(offset.get(c, 0.0)) for c in names])
+    for i, c in enumerate(names):
+        chan = steps.get(c, [])
+        if len(chan) > n:
+            raise ValueError(f"channel {c!r} has {len(chan)} steps but max_steps is {n}.")
+        level = base[i]
+        for k, (t0, a, b) in enumerate(chan):
+            if not np.isclose(a, level):
+                raise ValueError(
+                    f"step {k} of channel {c!r} starts from {a} but the reference is at {level} "
+                    "there; steps must chain."
+                )
+            start[i, k], size[i, k], level = t0, b - a, b
+    amp = np.array([sines.get(c, (0.0, 0.0, 0.0))[0] for c in names])
+    freq = np.array([sines.get(c, (0.0, 0.0, 0.0))[1] for c in names])
+    phase = np.array([sines.get(c, (0.0, 0.0, 0.0))[2] for c in names])
+    return PositionReference(
+        base, start, size, np.full((2, n), float(step_duration)), amp, freq, phase
+    )

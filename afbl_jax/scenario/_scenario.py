@@ -14,9 +14,9 @@ import numpy as np
 
 from .._typing import Array, Float, Scalar
 from .._validation import as_float, check_finite, check_last_dim, concrete
-from ..model import STATE_SIZE
+from ..model import STATE_SIZE, PositionSample, Trim
 from ._disturbances import PulseDisturbance
-from ._references import Reference
+from ._references import PositionReference, Reference
 from ._wind import Wind, no_wind
 
 
@@ -33,6 +33,13 @@ class Scenario(eqx.Module):
         t0, t1: time span [s].
         wind: wind velocity field acting through the vehicle's aerodynamic model (default calm
             air with no gusts and no turbulence; see `afbl_jax.scenario.Wind`).
+        position: horizontal position reference (x, y) of a loop with a position loop
+            (`afbl_jax.model.PositionHold`); None: hold the initial position. Loops without a
+            position loop ignore it (their roll and pitch follow ``reference``).
+        trim: the equilibrium the case starts in (`afbl_jax.model.Trim`, e.g. from
+            `trim_scenario`): the controllers' states at t0 are set so that they command its
+            inputs at zero error (and a position loop its attitude). None: zero controller
+            states (the paper's start).
     """
 
     reference: Reference
@@ -45,6 +52,8 @@ class Scenario(eqx.Module):
     t0: Scalar = eqx.field(default=0.0, converter=as_float)
     t1: Scalar = eqx.field(default=20.0, converter=as_float)
     wind: Wind = eqx.field(default_factory=no_wind)
+    position: PositionReference | None = None
+    trim: Trim | None = None
 
     def __check_init__(self):
         owner = type(self).__name__
@@ -62,16 +71,25 @@ class Scenario(eqx.Module):
         """True mass / vehicle mass at time t [s]."""
         return 1.0 + jnp.where(t >= self.payload_time, self.payload_fraction, 0.0)
 
+    def position_at(self, t) -> PositionSample:
+        """The position reference (x, y) at time t [s]: ``position``, or the initial position
+        held (zero rate and acceleration) when it is None."""
+        if self.position is None:
+            r = self.initial_state[..., 0:2]
+            return PositionSample(r, jnp.zeros_like(r), jnp.zeros_like(r))
+        return self.position(t)
+
     def jump_times(self) -> Array:
         """Times [s] where the closed-loop vector field is discontinuous or has a kink."""
-        return jnp.concatenate(
-            [
-                self.disturbance.jump_times(),
-                self.reference.kink_times(),
-                jnp.atleast_1d(self.payload_time),
-                self.wind.jump_times(),
-            ]
-        )
+        parts = [
+            self.disturbance.jump_times(),
+            self.reference.kink_times(),
+            jnp.atleast_1d(self.payload_time),
+            self.wind.jump_times(),
+        ]
+        if self.position is not None:
+            parts.append(self.position.kink_times())
+        return jnp.concatenate(parts)
 
 
 def stack_scenarios(scenarios: list[Scenario]) -> Scenario:

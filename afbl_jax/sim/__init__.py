@@ -12,6 +12,7 @@ from ._cache import CACHE_ENV_VAR as CACHE_ENV_VAR
 from ._cache import configure_compilation_cache as configure_compilation_cache
 from ._cache import default_cache_dir as default_cache_dir
 from ._closed_loop import COST_LAYOUT as COST_LAYOUT
+from ._closed_loop import INNER_SIZE as INNER_SIZE
 from ._closed_loop import CaseInputs as CaseInputs
 from ._closed_loop import ClosedLoop as ClosedLoop
 from ._closed_loop import ClosedLoopState as ClosedLoopState
@@ -42,6 +43,7 @@ from ._status import STATUS_MAX_STEPS as STATUS_MAX_STEPS
 from ._status import STATUS_MESSAGES as STATUS_MESSAGES
 from ._status import STATUS_NAMES as STATUS_NAMES
 from ._status import STATUS_OK as STATUS_OK
+from ._status import STATUS_OUTSIDE_ENVELOPE as STATUS_OUTSIDE_ENVELOPE
 from ._status import STATUS_SOLVER_FAILED as STATUS_SOLVER_FAILED
 from ._status import Status as Status
 from ._status import status_from as status_from

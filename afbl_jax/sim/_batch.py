@@ -51,6 +51,7 @@ from ..metrics import BatchMetrics, metrics_from_result
 from ..model import (
     AbstractAerodynamics,
     AbstractController,
+    PositionHold,
     QuadrotorParams,
     UnmodeledDynamics,
 )
@@ -261,7 +262,9 @@ def _leading(x) -> int | None:
     return None if np.ndim(x) == 0 else int(np.shape(x)[0])
 
 
-def _batch_axes(controller, scenarios, vehicles, models, unmodeled) -> tuple[int, dict]:
+def _batch_axes(
+    controller, scenarios, vehicles, models, unmodeled, position_loop=None
+) -> tuple[int, dict]:
     n = _leading(scenarios.t0)
     if n is None:
         raise ValueError(
@@ -276,6 +279,8 @@ def _batch_axes(controller, scenarios, vehicles, models, unmodeled) -> tuple[int
     ]
     if unmodeled is not None:
         probes.append(("unmodeled", unmodeled, lambda u: u.motor_tau, 0))
+    if position_loop is not None:
+        probes.append(("position_loop", position_loop, lambda p: p.tilt_max, 0))
     for name, tree, probe, base_ndim in probes:
         leaf = probe(tree)
         if np.ndim(leaf) == base_ndim:
@@ -288,6 +293,7 @@ def _batch_axes(controller, scenarios, vehicles, models, unmodeled) -> tuple[int
                 f"of scenarios), got a leaf of shape {np.shape(leaf)}."
             )
     axes.setdefault("unmodeled", False)
+    axes.setdefault("position_loop", False)
     return n, axes
 
 
@@ -362,6 +368,7 @@ def _split_cases(loop: ClosedLoop, scenarios, vehicles, models, limits, axes, dt
                 jax.tree.map(lambda _: axes["unmodeled"], part)
                 for part in (loop.plant, loop.actuators, loop.aerodynamics, loop.sampling)
             ),
+            jax.tree.map(lambda _: axes["position_loop"], loop.position_loop),
         ),
         CaseInputs(
             jax.tree.map(lambda _: True, scenarios),
@@ -385,6 +392,7 @@ def ensemble_vector_field(
     dtype=None,
     group_size: int | None = None,
     limits: DivergenceLimits | None = None,
+    position_loop: PositionHold | None = None,
 ) -> EnsembleField:
     """The vector field `simulate_batch` (``strategy="ensemble"``, lean integrator, one
     device, one chunk) evaluates on these cases, as an `EnsembleField` (call it on a state
@@ -396,8 +404,8 @@ def ensemble_vector_field(
     limits = DivergenceLimits() if limits is None else limits
     default = jnp.result_type(float)
     dtype = np.dtype(default if dtype is None else dtype)
-    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled)
-    loop = ClosedLoop.make(controller, unmodeled, aerodynamics)
+    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled, position_loop)
+    loop = ClosedLoop.make(controller, unmodeled, aerodynamics, position_loop)
     if loop.digital:
         raise ValueError(
             "ensemble_vector_field: continuous control only (the held command of digital "
@@ -428,6 +436,7 @@ def simulate_batch(
     devices=None,
     integrator: Literal["lean", "diffeqsolve"] = "lean",
     work_queue: bool = True,
+    position_loop: PositionHold | None = None,
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -468,6 +477,8 @@ def simulate_batch(
             cases (up to `QUEUE_POOL_CHUNKS` chunks per queue): a group that is done hands its
             lane to the next group instead of the chunk waiting for its slowest group. The
             results are bitwise those of the chunks one after the other (False).
+        position_loop: the outer position loop (`afbl_jax.model.PositionHold`, shared or
+            batched: gains with leading axis N), as in `simulate`; None: none.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -508,7 +519,12 @@ def simulate_batch(
             f"simulate_batch: strategy 'vmap' runs in the default float dtype "
             f"({default}); got dtype {dtype}. Use strategy='ensemble'."
         )
-    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled)
+    if position_loop is not None and not isinstance(position_loop, PositionHold):
+        raise TypeError(
+            f"simulate_batch: position_loop must be a PositionHold or None, got "
+            f"{type(position_loop).__name__}."
+        )
+    n, axes = _batch_axes(controller, scenarios, vehicles, models, unmodeled, position_loop)
     if strategy == "ensemble":
         for name in ("t0", "t1"):
             v = concrete(getattr(scenarios, name))
@@ -517,7 +533,7 @@ def simulate_batch(
                     f"simulate_batch: strategy 'ensemble' needs one {name} for all "
                     f"cases, got values from {v.min()} to {v.max()} [s]."
                 )
-    loop = ClosedLoop.make(controller, unmodeled, aerodynamics)
+    loop = ClosedLoop.make(controller, unmodeled, aerodynamics, position_loop)
     if strategy == "ensemble":
         _check_group_rates(
             loop,

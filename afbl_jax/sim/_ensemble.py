@@ -44,6 +44,7 @@ import numpy as np
 
 from .._typing import Array
 from ..metrics import (
+    N_PEAKS,
     BatchMetrics,
     finish_peaks,
     fold_peaks,
@@ -51,7 +52,6 @@ from ..metrics import (
     peaks_over_samples,
     sample_peaks,
 )
-from ..model import CHANNEL_INDEX
 from ._closed_loop import ClosedLoopState
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
 from ._lean import Groups, ensemble_field, lean_loop
@@ -128,9 +128,22 @@ def _field(part, fixed, n):
     return field
 
 
-def _metrics(state, t_final, status, steps, rejected, peaks) -> BatchMetrics:
+def _anatomy(part, fixed, state, t_final, status):
+    """(failure cause, final saturation) of every case (`ClosedLoop.anatomy`), from its end
+    state (leaves with the case axis first)."""
+
+    def one(p, y, t, st):
+        loop, inputs = eqx.combine(p, fixed)
+        return loop.anatomy(t, y, st, inputs)
+
+    return jax.vmap(one)(part, state, t_final, status)
+
+
+def _metrics(part, fixed, state, t_final, status, steps, rejected, peaks) -> BatchMetrics:
     n = t_final.shape[0]
     ones = jnp.ones((n,), jnp.int32)
+    cause, final_saturation = _anatomy(part, fixed, state, t_final, status)
+    nan = jnp.full((n,), jnp.nan, state.cost.dtype)
     return BatchMetrics(
         ise_attitude=state.cost[:, 0],
         ise_altitude=state.cost[:, 1],
@@ -143,6 +156,10 @@ def _metrics(state, t_final, status, steps, rejected, peaks) -> BatchMetrics:
         peak_attitude_error=peaks[:, 0],
         peak_altitude_error=peaks[:, 1],
         peak_saturation=peaks[:, 2],
+        ise_position=state.cost[:, 4] if state.cost.shape[1] > 4 else nan,
+        peak_position_error=peaks[:, 3],
+        failure_cause=cause,
+        final_saturation=final_saturation,
     )
 
 
@@ -223,7 +240,9 @@ def _continuous(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_
         def one_sample(t, state, p):
             lp, inputs = eqx.combine(p, fixed)
             sig = lp.signals_and_derivative(t, state, inputs)[0]
-            return sample_peaks(sig.error, sig.u_command, inputs.vehicle, inputs.model)
+            return sample_peaks(
+                sig.error, sig.u_command, inputs.vehicle, inputs.model, sig.position_error
+            )
 
         def save_peaks(t, y, args):
             return jax.vmap(one_sample, in_axes=(None, 0, 0), axis_size=n)(t, y[0], part)
@@ -249,8 +268,10 @@ def _continuous(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_
     if n_save:
         peaks = jax.vmap(peaks_over_samples, in_axes=(None, 1, 0))(sol.ts[1], sol.ys[1], t_final)
     else:
-        peaks = jnp.full((n, 3), jnp.nan, dtype)
+        peaks = jnp.full((n, N_PEAKS), jnp.nan, dtype)
     return _metrics(
+        part,
+        fixed,
         state,
         t_final,
         status,
@@ -318,8 +339,12 @@ def _digital(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_ste
                 alive, jnp.stack([sol.stats["num_steps"], sol.stats["num_rejected_steps"]]), 0
             ),
         )
-        out = (new[0][0].plant[:, CHANNEL_INDEX], held.u_command, new[3]) if n_save else None
+        out = (peak_inputs(new[0][0]), held.u_command, new[3]) if n_save else None
         return new, out
+
+    def peak_inputs(y):
+        """`ClosedLoop.peak_inputs` of every case (leading axis n)."""
+        return jax.vmap(lambda yy: loop.peak_inputs(yy.plant, yy.controller))(y)
 
     carry0 = (y0, buf0, jnp.asarray(STATUS_OK, jnp.int32), t0, jnp.zeros(2, jnp.int32))
     ((state, frozen_time), _, result, t_reached, steps), outs = jax.lax.scan(
@@ -332,24 +357,21 @@ def _digital(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_ste
     )
     t_final = t_reached - frozen_time
     if n_save:
-        q_ends, u_held, t_ends = outs  # (K, n, 4), (K, n, 4), (K,)
+        q_ends, u_held, t_ends = outs  # (K, n, P), (K, n, 4), (K,)
         ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
-        q = jnp.concatenate([y0[0].plant[None][:, :, CHANNEL_INDEX], q_ends])
-        q_ts = interpolate(ts, jnp.concatenate([t0[None], t_ends]), q)  # (n_save, n, 4)
+        q = jnp.concatenate([peak_inputs(y0[0])[None], q_ends])
+        q_ts = interpolate(ts, jnp.concatenate([t0[None], t_ends]), q)  # (n_save, n, P)
         u_ts = u_held[held_index(ts, t0, h, max_samples)]  # (n_save, n, 4)
 
         def case_peaks(p, q_c, u_c, tf):
             lp, inputs = eqx.combine(p, fixed)
-            err = jax.vmap(lambda t, qq: inputs.scenario.reference(t).r - qq)(ts, q_c)
-            samples = jax.vmap(lambda e, u: sample_peaks(e, u, inputs.vehicle, inputs.model))(
-                err, u_c
-            )
+            samples = jax.vmap(lambda t, qq, u: lp.peak_sample(t, qq, u, inputs))(ts, q_c, u_c)
             return peaks_over_samples(ts, samples, tf)
 
         peaks = jax.vmap(case_peaks, in_axes=(0, 1, 1, 0), axis_size=n)(part, q_ts, u_ts, t_final)
     else:
-        peaks = jnp.full((n, 3), jnp.nan, dtype)
-    return _metrics(state, t_final, status, steps[0], steps[1], peaks)
+        peaks = jnp.full((n, N_PEAKS), jnp.nan, dtype)
+    return _metrics(part, fixed, state, t_final, status, steps[0], steps[1], peaks)
 
 
 # --------------------------------------------------------------------------- lean integrator
@@ -465,8 +487,7 @@ def _peak_sample(t, loop, inputs, sampled):
     plant, controller = sampled
     measured = loop.plant.to_paper_layout(plant)
     u_cmd = loop.command(t, measured, controller, inputs)[0]
-    err = inputs.scenario.reference(t).r - plant[CHANNEL_INDEX]
-    return sample_peaks(err, u_cmd, inputs.vehicle, inputs.model)
+    return loop.peak_sample(t, loop.peak_inputs(plant, controller), u_cmd, inputs)
 
 
 def _sampled(y: ClosedLoopState):
@@ -531,7 +552,7 @@ def _fold_samples(peaks, ts, t_hi, counts, sample_at, groups: Groups):
     return _due_samples(peaks, ts, t_hi, take)
 
 
-def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetrics:
+def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks, part, fixed) -> BatchMetrics:
     """``peaks``: (n, 3) running maxima (`fold_peaks`), or None without peaks."""
     status = jnp.where(
         cases.frozen,
@@ -539,8 +560,10 @@ def _lean_result(out, cases: _Cases, groups: Groups, dtype, peaks) -> BatchMetri
         groups.per_case(status_from(out.result, jnp.zeros_like(out.t, bool))),
     ).astype(jnp.int32)
     n = groups.count * groups.size
-    peaks = jnp.full((n, 3), jnp.nan, dtype) if peaks is None else finish_peaks(peaks)
+    peaks = jnp.full((n, N_PEAKS), jnp.nan, dtype) if peaks is None else finish_peaks(peaks)
     return _metrics(
+        part,
+        fixed,
         _to_first(out.y),
         cases.t_final(groups.per_case(out.t)),
         status,
@@ -700,19 +723,18 @@ def _lean_continuous(
         peaks = _stored_peaks(cases.peaks, ts, cases, sample, groups)
     else:
         peaks = _stored_peaks_by_blocks(cases.peaks, ts, cases, part_g, fixed, groups, lanes)
-    return _lean_result(out, cases, groups, dtype, peaks)
+    return _lean_result(out, cases, groups, dtype, peaks, part, fixed)
 
 
 def _held_sample(t, k, e_prev, e_end, h, t0, max_samples, loop, inputs, qa, qb, ua, ub):
-    """`sample_peaks` of one case at a save time t in (e_prev, e_end]: q linearly
-    interpolated between the sample instants (states qa, qb), the command held over t's
-    sample interval (ua: interval k, ub: interval k + 1), as `simulate` samples digital
-    control."""
-    del loop
+    """`sample_peaks` of one case at a save time t in (e_prev, e_end]: the peak inputs
+    (`ClosedLoop.peak_inputs`) linearly interpolated between the sample instants (qa, qb), the
+    command held over t's sample interval (ua: interval k, ub: interval k + 1), as `simulate`
+    samples digital control."""
     knots = jnp.stack([e_prev, e_end])
     q = jax.vmap(lambda a, b: jnp.interp(t, knots, jnp.stack([a, b])))(qa, qb)
     u = jnp.where(held_index(t, t0, h, max_samples) > k, ub, ua)
-    return sample_peaks(inputs.scenario.reference(t).r - q, u, inputs.vehicle, inputs.model)
+    return loop.peak_sample(t, q, u, inputs)
 
 
 def _lean_digital(
@@ -768,7 +790,7 @@ def _lean_digital(
         )
         e_end = interval_end(k)
         _, buf_next, held_next, dctrl_next = sample_instants(k + 1, y, buf)
-        q_end = y.plant[CHANNEL_INDEX]
+        q_end = loop.peak_inputs(y.plant, y.controller)
         peaks = cases.peaks
         if n_save:
 
@@ -810,7 +832,8 @@ def _lean_digital(
         )
     )
     state0, buf0, held0, dctrl0 = sample_instants(k0, state0, buf0)
-    extra0 = (cases0, k0, buf0, dctrl0, state0.plant[CHANNEL_INDEX], jnp.full((G,), t0))
+    q0 = loop.peak_inputs(state0.plant, state0.controller)  # leaves (..., n): case axis last
+    extra0 = (cases0, k0, buf0, dctrl0, q0, jnp.full((G,), t0))
     out = lean_loop(
         _lean_group_field(fixed),
         part_g,
@@ -828,4 +851,4 @@ def _lean_digital(
         boundary=lambda extra, inputs: interval_end(extra[1]),
     )
     cases = out.extra[0]
-    return _lean_result(out, cases, groups, dtype, cases.peaks[1] if n_save else None)
+    return _lean_result(out, cases, groups, dtype, cases.peaks[1] if n_save else None, part, fixed)

@@ -21,6 +21,7 @@ from .._validation import check_positive
 from ..model import (
     AbstractAerodynamics,
     AbstractController,
+    PositionHold,
     QuadrotorParams,
     UnmodeledDynamics,
 )
@@ -73,10 +74,13 @@ class SimulationResult(eqx.Module):
         rotor_speeds: (n_save, 4) [rad/s].
         disturbance_force: (n_save, 3) [N]; disturbance_torque: (n_save, 3) [N m] (pulses plus
             aerodynamic wrench).
+        position_error: p_ref - p (x, y) [m], (n_save, 2), with a position loop (else None).
         final: closed-loop state at the end of the run (t1, or where it stopped).
         t_final: time the run ended [s].
         ise_attitude, ise_altitude, effort, saturation: cost integrals at the end of the run
-            (`COST_LAYOUT`).
+            (`COST_LAYOUT`); ise_position: with a position loop (else None).
+        failure_cause: `afbl_jax.metrics.FAILURE_CAUSES` code of the end state; final_saturation:
+            commanded rotor saturation on the end state [-] (`ClosedLoop.anatomy`).
         status: a `Status` code (0 ok, 1 diverged, 2 max_steps reached, 3 solver failure;
             `status_message` explains each).
         num_steps, num_accepted_steps, num_rejected_steps: solver statistics (totals over the
@@ -103,6 +107,10 @@ class SimulationResult(eqx.Module):
     num_steps: Int[Array, ""]
     num_accepted_steps: Int[Array, ""]
     num_rejected_steps: Int[Array, ""]
+    failure_cause: Int[Array, ""]
+    final_saturation: Scalar
+    position_error: Float[Array, "n 2"] | None = None
+    ise_position: Scalar | None = None
 
     @property
     def ok(self) -> Array:
@@ -110,8 +118,17 @@ class SimulationResult(eqx.Module):
 
 
 def _result(
-    ts, traj: ClosedLoopState, signals: Signals, final: ClosedLoopState, t_final, status, steps
+    loop: ClosedLoop,
+    inputs: CaseInputs,
+    ts,
+    traj: ClosedLoopState,
+    signals: Signals,
+    final: ClosedLoopState,
+    t_final,
+    status,
+    steps,
 ) -> SimulationResult:
+    cause, final_sat = loop.anatomy(t_final, final, status, inputs)
     return SimulationResult(
         ts=ts,
         plant=traj.plant,
@@ -133,6 +150,10 @@ def _result(
         num_steps=steps[0],
         num_accepted_steps=steps[1],
         num_rejected_steps=steps[2],
+        failure_cause=cause,
+        final_saturation=final_sat,
+        position_error=signals.position_error,
+        ise_position=None if loop.position_loop is None else final.cost[4],
     )
 
 
@@ -229,7 +250,7 @@ def _continuous(
         save_ts, traj = jnp.zeros((0,), dtype), _empty(y0)
         signals = _empty(loop.signals_and_derivative(sc.t0, y0, inputs)[0])
     status = status_from(sol.result, ~_finite(final))
-    return _result(save_ts, traj, signals, final, t_final, status, _stats(sol))
+    return _result(loop, inputs, save_ts, traj, signals, final, t_final, status, _stats(sol))
 
 
 def _digital(
@@ -306,7 +327,7 @@ def _digital(
                 t0, y0, inputs, Held(jnp.zeros(4, dtype), jnp.zeros(4, dtype))
             )[0]
         )
-    return _result(ts, traj, signals, final, t_final, status, tuple(nsteps))
+    return _result(loop, inputs, ts, traj, signals, final, t_final, status, tuple(nsteps))
 
 
 @eqx.filter_jit
@@ -331,6 +352,7 @@ def simulate(
     adjoint: diffrax.AbstractAdjoint | None = None,
     unmodeled: UnmodeledDynamics | None = None,
     aerodynamics: AbstractAerodynamics | str | None = None,
+    position_loop: PositionHold | None = None,
     saving: str = "saveat",
 ) -> SimulationResult:
     """Simulate one closed-loop case.
@@ -354,6 +376,9 @@ def simulate(
             model with a continuous controller.
         aerodynamics: aerodynamic model, a name ("linear", "rotor_drag") or an
             `AbstractAerodynamics`; None (default): `LinearDrag` (coefficients in ``vehicle``).
+        position_loop: the outer position loop (`afbl_jax.model.PositionHold`): roll and pitch
+            references from the scenario's position reference (``Scenario.position``); None
+            (default): the scenario's attitude references (the paper's loop).
         saving: how the ``n_save`` samples of a continuous-control run are taken (`SAVINGS`).
             "saveat" (default): diffrax's ``SaveAt(ts=...)`` inside the solve; lean in memory,
             for batches and gradients. Under ``jax.jit`` diffrax checks those times with a
@@ -368,7 +393,7 @@ def simulate(
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
-    loop = closed_loop_of(controller, unmodeled, aerodynamics)
+    loop = closed_loop_of(controller, unmodeled, aerodynamics, position_loop)
     vehicle = QuadrotorParams() if vehicle is None else vehicle
     model = vehicle if model is None else model
     limits = DivergenceLimits() if limits is None else limits
@@ -391,12 +416,13 @@ def simulate(
     )
 
 
-def closed_loop_of(controller, unmodeled=None, aerodynamics=None) -> ClosedLoop:
+def closed_loop_of(controller, unmodeled=None, aerodynamics=None, position_loop=None) -> ClosedLoop:
     """The `ClosedLoop` a `simulate` call describes (a controller plus optional settings)."""
     if isinstance(controller, ClosedLoop):
-        if unmodeled is not None or aerodynamics is not None:
+        if unmodeled is not None or aerodynamics is not None or position_loop is not None:
             raise ValueError(
-                "give either a ClosedLoop or unmodeled/aerodynamics settings, not both."
+                "give either a ClosedLoop or unmodeled/aerodynamics/position_loop settings, "
+                "not both."
             )
         return controller
     if not isinstance(controller, AbstractController):
@@ -404,4 +430,8 @@ def closed_loop_of(controller, unmodeled=None, aerodynamics=None) -> ClosedLoop:
             f"controller must be an AbstractController or a ClosedLoop, got "
             f"{type(controller).__name__}."
         )
-    return ClosedLoop.make(controller, unmodeled, aerodynamics)
+    if position_loop is not None and not isinstance(position_loop, PositionHold):
+        raise TypeError(
+            f"position_loop must be a PositionHold or None, got {type(position_loop).__name__}."
+        )
+    return ClosedLoop.make(controller, unmodeled, aerodynamics, position_loop)

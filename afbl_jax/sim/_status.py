@@ -9,8 +9,13 @@
   another reason (step size collapsed) is ``solver_failed``;
 - else ``ok``.
 
+``outside_envelope`` is decided before simulating (`afbl_jax.model.envelope_margin`): the case
+asks more than the vehicle can fly (no trim in its mean wind, or a trim beyond the tilt limit
+or the rotors' reserve). No solver sets it; a study sets it on such cases, so that they are
+never counted as controller failures.
+
 Results tables use the labels ("ok", "diverged", "solver_failed": both solver outcomes are
-"solver_failed" there).
+"solver_failed" there; "outside_envelope").
 """
 
 from __future__ import annotations
@@ -30,11 +35,14 @@ class Status(enum.IntEnum):
     diverged = 1
     max_steps_reached = 2
     solver_failed = 3
+    outside_envelope = 4
 
     @property
     def label(self) -> str:
-        """Results-table label: "ok", "diverged" or "solver_failed"."""
-        return "solver_failed" if self >= Status.max_steps_reached else self.name
+        """Results-table label: "ok", "diverged", "solver_failed" or "outside_envelope"."""
+        if self in (Status.max_steps_reached, Status.solver_failed):
+            return "solver_failed"
+        return self.name
 
     @property
     def message(self) -> str:
@@ -48,17 +56,21 @@ _MESSAGES = {
     Status.max_steps_reached: "solver_failed: max_steps reached before t1 (stiff or too tight "
     "tolerances)",
     Status.solver_failed: "solver_failed: the solver stopped (step size collapsed)",
+    Status.outside_envelope: "outside_envelope: the case is outside the vehicle's flight "
+    "envelope (no trim in its wind, or a trim past the tilt limit or the rotors' reserve); "
+    "not a controller failure",
 }
 
 STATUS_OK = int(Status.ok)
 STATUS_DIVERGED = int(Status.diverged)
 STATUS_MAX_STEPS = int(Status.max_steps_reached)
 STATUS_SOLVER_FAILED = int(Status.solver_failed)
+STATUS_OUTSIDE_ENVELOPE = int(Status.outside_envelope)
 STATUS_NAMES: dict[int, str] = {int(s): s.label for s in Status}
 """Status code -> results-table label."""
 STATUS_MESSAGES: dict[int, str] = {int(s): s.message for s in Status}
 """Status code -> human-readable message."""
-STATUS_LABELS: tuple[str, ...] = ("ok", "diverged", "solver_failed")
+STATUS_LABELS: tuple[str, ...] = ("ok", "diverged", "solver_failed", "outside_envelope")
 """The labels a results table uses, in report order."""
 
 

@@ -37,6 +37,13 @@ Strategies (rows of bench.json):
   rows with ``simulate_batch(integrator="diffeqsolve")`` (`diffrax.diffeqsolve` per group; with
   digital control a scan of one solve per sample interval) instead of the default lean loop:
   the baseline of the lean integrator, measured in the same run.
+- ``montecarlo_cases``: the Monte-Carlo default distribution's own cases (wind, turbulence,
+  gusts, rotor drag, payload, model errors, position hold, trimmed start), solved exactly as
+  ``afbl montecarlo`` solves a chunk (`afbl_jax.studies.montecarlo.run_chunk`, default
+  strategy); ``montecarlo_cases_no_position_loop``: the same cases flown without the position
+  loop and from rest (the cost of the position loop and the trimmed start, in the same run).
+  Their accuracy is measured on the first cases against an x64 Dopri8 solve (rtol 1e-10) of
+  the same closed loop.
 
 Every batched row splits the cases over all local devices (``devices`` in the row) except
 ``montecarlo_default_1dev``; ``afbl bench`` starts with one XLA CPU device per core
@@ -122,8 +129,16 @@ BATCH_STRATEGIES = {
         False, unmodeled=True, integrator="diffeqsolve"
     ),
 }
+MONTECARLO_CASE_ROWS = {
+    # name: overrides of the Monte-Carlo default distribution the cases are drawn from
+    "montecarlo_cases": {},
+    "montecarlo_cases_no_position_loop": {"flight": {"position_hold": False, "start": "rest"}},
+}
+"""Rows on the Monte-Carlo default distribution's own cases (AFBL, ``afbl montecarlo``'s default
+strategy): the default (position hold, trimmed start) and the same cases flown without the
+position loop from rest (attitude steps and sines, drifting with the air)."""
 LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
-ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES)
+ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES, *MONTECARLO_CASE_ROWS)
 REFERENCE = {"solver": "dopri8", "rtol": 1e-10, "atol": 1e-12, "dtype": "float64"}
 
 
@@ -407,6 +422,73 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     }
 
 
+def montecarlo_case_batch(name: str, n: int, seed: int):
+    """The first ``n`` cases of the row's Monte-Carlo distribution (`MONTECARLO_CASE_ROWS`)."""
+    from .montecarlo import Distribution, sample_cases
+
+    return sample_cases(Distribution.from_dict(MONTECARLO_CASE_ROWS[name]), n, seed)
+
+
+def montecarlo_reference(batch) -> np.ndarray:
+    """(n, 2) tight x64 reference ISE of a Monte-Carlo case batch (Dopri8 ensemble, rtol 1e-10,
+    atol 1e-12, the batch's closed loop)."""
+    m = simulate_batch(
+        AFBL(),
+        batch.scenario,
+        batch.vehicle,
+        batch.model,
+        aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
+        strategy="ensemble",
+        solver=REFERENCE["solver"],
+        rtol=REFERENCE["rtol"],
+        atol=REFERENCE["atol"],
+        dtype="float64",
+        group_size=4,
+        max_steps=200_000,
+    )
+    ise = _ise(m)
+    ise[np.asarray(m.status) != STATUS_OK] = np.nan
+    return ise
+
+
+def measure_montecarlo_cases(name: str, batch, ref: np.ndarray) -> dict:
+    """One row on Monte-Carlo cases: `run_chunk` with the default strategy, run twice
+    (compile + run, then run), the second call timed."""
+    from .montecarlo import DEFAULT_STRATEGY, STRATEGY_TOLERANCES, run_chunk
+
+    n, rss0 = batch.n_cases, _rss_mb()
+    shard = len(jax.local_devices()) > 1
+    t = time.perf_counter()
+    run_chunk(AFBL(), batch, shard=shard)
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    m = run_chunk(AFBL(), batch, shard=shard)
+    run = time.perf_counter() - t
+    ise = np.stack([m["ise_attitude"], m["ise_altitude"]], axis=1).astype(np.float64)
+    k = min(n, len(ref))
+    ok = (np.asarray(m["status"])[:k] == STATUS_OK) & np.all(np.isfinite(ref[:k]), axis=1)
+    rtol, atol = STRATEGY_TOLERANCES[DEFAULT_STRATEGY]
+    return {
+        "strategy": name,
+        "N": n,
+        "dtype": "float32",
+        "rtol": rtol,
+        "atol": atol,
+        "devices": len(jax.local_devices()) if shard else 1,
+        "distribution": MONTECARLO_CASE_ROWS[name],
+        "sims_per_s": n / run,
+        "seconds": run,
+        "compile_s": max(first - run, 0.0),
+        "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+        "max_rel_ise_error": _rel_error(ise[:k], ref[:k], ok),
+        "error_cases": k,
+        "n_ok": int(np.sum(np.asarray(m["status"]) == STATUS_OK)),
+        "num_steps_max": int(np.max(m["solver_steps"])),
+        "num_steps_mean": float(np.mean(m["solver_steps"])),
+    }
+
+
 def measure_diffrax_loop(scenarios: Scenario, ref: np.ndarray) -> dict:
     n = scenarios.t0.shape[0]
     ctrl, rss0 = AFBL(), _rss_mb()
@@ -474,6 +556,7 @@ class BenchConfig:
         scipy_cases, loop_cases: cases of the per-case loops (sims/s does not depend on N).
         ref_cases: cases with a tight x64 reference (accuracy on the first min(N, ref_cases)).
         seed: seed of the cases.
+        montecarlo_ref_cases: cases of the Monte-Carlo rows with a tight x64 reference.
     """
 
     out: Path
@@ -483,6 +566,7 @@ class BenchConfig:
     loop_cases: int = 64
     ref_cases: int = 4096
     seed: int = 0
+    montecarlo_ref_cases: int = 64
 
 
 def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> list[dict]:
@@ -548,6 +632,20 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
                     f"  {rows[-1]['sims_per_s']:.1f} sims/s, err "
                     f"{rows[-1]['max_rel_ise_error']:.2e}"
                 )
+    mc_rows = [name for name in MONTECARLO_CASE_ROWS if name in strategies]
+    if mc_rows:
+        n_mc_ref = min(n_max, config.montecarlo_ref_cases)
+        for name in mc_rows:
+            log(f"{name}: sampling {n_max} cases, x64 Dopri8 reference of {n_mc_ref} ...")
+            batch = montecarlo_case_batch(name, n_max, seed)
+            mc_ref = montecarlo_reference(batch.take(np.arange(n_mc_ref)))
+            for n in sorted(int(s) for s in sizes):
+                log(f"{name} N={n} ...")
+                rows.append(measure_montecarlo_cases(name, batch.take(np.arange(n)), mc_ref))
+                log(
+                    f"  {rows[-1]['sims_per_s']:.1f} sims/s, err "
+                    f"{rows[-1]['max_rel_ise_error']:.2e}"
+                )
     base = next((r["sims_per_s"] for r in rows if r["strategy"] == "scipy_rk45_loop"), None)
     for r in rows:
         r["ratio_to_scipy"] = None if base is None else r["sims_per_s"] / base
@@ -570,20 +668,20 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
     (out / "bench.json").write_text(json.dumps(rows, indent=2))
     from ..plotting.bench import plot_benchmark
 
-    plot_benchmark(rows, out / "bench.png", tuple(BATCH_STRATEGIES))
+    plot_benchmark(rows, out / "bench.png", (*BATCH_STRATEGIES, *MONTECARLO_CASE_ROWS))
     return rows
 
 
 def format_rows(rows: list[dict]) -> str:
     head = (
-        f"{'strategy':<24}{'N':>7}{'dev':>4}{'dtype':>9}{'sims/s':>11}{'x scipy':>9}"
+        f"{'strategy':<34}{'N':>7}{'dev':>4}{'dtype':>9}{'sims/s':>11}{'x scipy':>9}"
         f"{'compile s':>11}{'rss MB':>8}{'max rel err':>13}"
     )
     lines = [head]
     for r in rows:
         ratio = "-" if r["ratio_to_scipy"] is None else f"{r['ratio_to_scipy']:.1f}"
         lines.append(
-            f"{r['strategy']:<24}{r['N']:>7}{r['devices']:>4}{r['dtype']:>9}"
+            f"{r['strategy']:<34}{r['N']:>7}{r['devices']:>4}{r['dtype']:>9}"
             f"{r['sims_per_s']:>11.1f}"
             f"{ratio:>9}{r['compile_s']:>11.1f}{r['peak_rss_delta_mb']:>8.0f}"
             f"{r['max_rel_ise_error']:>13.2e}"

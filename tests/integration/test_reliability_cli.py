@@ -60,10 +60,13 @@ def _strict_json(text: str):
 
 
 def test_solver_failure_stops_where_it_failed(tmp_path):
-    """The reported case: with inertia x 1e-9 every run stops after microseconds. The results
-    say where (not t1) and why; the summary says "no successful runs" in words and holds null."""
+    """The reported case: with inertia x 1e-9 and a start off the trim, every run stops after
+    microseconds. The results say where (not t1) and why; the summary says "no successful
+    runs" in words and holds null."""
     dist = tmp_path / "it.toml"
-    dist.write_text("[model_error]\ninertia_scale = [1e-9, 1e-9]\n")
+    dist.write_text(
+        "[model_error]\ninertia_scale = [1e-9, 1e-9]\n[initial]\nattitude = [0.05, 0.1]\n"
+    )
     out = tmp_path / "X"
     r = afbl(
         "montecarlo",

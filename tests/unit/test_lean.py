@@ -100,6 +100,7 @@ def _mc_run(mc_cases, controller="afbl", **kw):
         batch.vehicle,
         batch.model,
         aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
         rtol=RTOL,
         atol=ATOL,
         n_save=41,
@@ -136,11 +137,14 @@ def test_lean_chunks_reuse_one_program_and_equal_unchunked(mc_cases, mc_lean):
         return _mc_run((batch, sc), group_size=GROUP, chunk_size=GROUP)
 
     chunked = run(scenarios)
-    for k in ("ise_attitude", "ise_altitude", "t_final", *PEAKS):
-        np.testing.assert_allclose(
-            getattr(chunked, k), getattr(mc_lean, k), rtol=1e-9, atol=1e-14, err_msg=k
-        )
     np.testing.assert_array_equal(chunked.status, mc_lean.status)
+    # the chunked and unchunked programs fuse (and so round) differently; the diverged cases
+    # (1 and 6), whose states run away before they are frozen, amplify that round-off
+    ok = np.asarray(mc_lean.status) == A.sim.STATUS_OK
+    for k in ("ise_attitude", "ise_altitude", "t_final", *PEAKS):
+        a, b = np.asarray(getattr(chunked, k)), np.asarray(getattr(mc_lean, k))
+        np.testing.assert_allclose(a[ok], b[ok], rtol=1e-9, atol=1e-14, err_msg=k)
+        np.testing.assert_allclose(a[~ok], b[~ok], rtol=1e-5, atol=1e-12, err_msg=k)
     other = _heavy(batch.scenario, (0,))  # new values, same shapes
     with count_compiles() as compiles:
         run(other)
@@ -176,6 +180,7 @@ def test_lean_digital_control_agrees_with_diffeqsolve():
         batch.model,
         unmodeled=batch.unmodeled,
         aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
         rtol=RTOL,
         atol=ATOL,
         n_save=31,

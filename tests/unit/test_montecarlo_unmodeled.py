@@ -131,6 +131,7 @@ def test_chunk_case_equals_single_unmodeled_simulation(digital, fbl):
         max_steps=SETTINGS.max_steps,
         unmodeled=settings,
         aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
     )
     assert np.isclose(out["ise_attitude"][i], float(r.ise_attitude), rtol=1e-9, atol=1e-14)
     assert np.isclose(out["ise_altitude"][i], float(r.ise_altitude), rtol=1e-9, atol=1e-14)
@@ -146,6 +147,7 @@ def test_chunk_case_equals_single_unmodeled_simulation(digital, fbl):
         n_save=SETTINGS.n_save,
         max_steps=SETTINGS.max_steps,
         aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
     )
     assert not np.isclose(float(plain.ise_attitude), float(r.ise_attitude), rtol=1e-3)
     # results table carries the sampled numbers
@@ -155,14 +157,25 @@ def test_chunk_case_equals_single_unmodeled_simulation(digital, fbl):
 
 
 def test_slow_delayed_controller_flagged_diverged(fbl):
-    slow = _dist(control_rate=[2.0, 3.0], delay_samples=[2, 2], motor_tau=[0.03, 0.03])
+    """A 2-3 Hz controller with a two-sample delay, started 0.05-0.1 rad off its trim."""
+    slow = mc.Distribution.from_dict(
+        {
+            **QUIET,
+            "initial": {"attitude": [0.05, 0.1]},
+            "unmodeled": {
+                "enabled": True,
+                "control_rate": [2.0, 3.0],
+                "delay_samples": [2, 2],
+                "motor_tau": [0.03, 0.03],
+            },
+        }
+    )
     batch = mc.sample_cases(slow, CHUNK, SEED)
     out = mc.run_chunk(fbl, batch, settings=SETTINGS)  # must not raise
     ref = mc.run_chunk(fbl, batch, strategy="vmap", settings=SETTINGS)
     np.testing.assert_array_equal(out["status"], ref["status"])
-    # the single solve's divergence event stops at the end of the step that crossed the limit;
-    # the ensemble freezes the case at the crossing (its steps shrink onto it): within a step
-    assert np.all(out["t_final"] <= ref["t_final"] + 1e-6)
+    # both stop a case at the end of the step in which it crossed the limit (their own steps):
+    # within a step of each other
     np.testing.assert_allclose(out["t_final"], ref["t_final"], atol=0.1)
     labels = mc._runner.status_label(out["status"])
     assert np.all(labels == "diverged"), labels
@@ -193,6 +206,7 @@ def test_ensemble_with_unmodeled_agrees_with_single_simulation(digital, fbl, str
             n_save=31,
             unmodeled=batch.unmodeled_case(i),
             aerodynamics=batch.aerodynamics,
+            position_loop=batch.position_loop,
         )
         for k in ("ise_attitude", "ise_altitude"):
             np.testing.assert_allclose(out[k][i], float(getattr(r, k)), rtol=bound, err_msg=k)

@@ -201,3 +201,52 @@ def test_rotor_drag_gradient_is_finite_at_zero_airspeed():
 
     g = jax.grad(fx)(jnp.zeros(3))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_se3_hover_in_wind_settles_at_our_trim():
+    """RotorPy's multirotor (rotor drag + parasitic drag, same coefficients) flown by RotorPy's
+    own SE3 controller holding a point in a steady wind settles at our trim
+    (`afbl_jax.solve_trim` at RotorPy's settled yaw): the same tilt (1e-6 rad) and rotor speeds
+    (1e-6 relative). The controllers differ (SE3 has no integral action and settles off the
+    point); the equilibrium is the physics'."""
+    from rotorpy.controllers.quadrotor_control import SE3Control
+
+    p = _vehicle(rotor_drag_horizontal=3e-4, rotor_drag_vertical=6e-4)
+    params = {**_quad_params(p, True), "tau_m": 5e-3}
+    quad = multirotor.Multirotor(params, aero=True)
+    control = SE3Control(params)
+    wind = np.array([5.0, -3.0, 0.0])
+    zero = np.zeros(3)
+    flat = {"x": zero, "x_dot": zero, "x_ddot": zero, "x_dddot": zero, "x_ddddot": zero}
+    flat.update(yaw=0.0, yaw_dot=0.0, yaw_ddot=0.0)
+
+    def rhs(t, s):
+        state = multirotor.Multirotor._unpack_state(s)
+        state["q"] = state["q"] / np.linalg.norm(state["q"])
+        cmd = control.update(t, state, flat)["cmd_motor_speeds"]
+        return quad._s_dot_fn(t, s, np.clip(cmd, 0.0, 1e4))
+
+    omega0 = float(p.hover_omega)
+    state0 = {
+        "x": zero,
+        "v": zero,
+        "q": np.array([0.0, 0.0, 0.0, 1.0]),
+        "w": zero,
+        "wind": wind,
+        "rotor_speeds": np.full(4, omega0),
+    }
+    s0 = multirotor.Multirotor._pack_state(state0)
+    sol = solve_ivp(rhs, (0.0, 25.0), s0, method="DOP853", rtol=1e-11, atol=1e-11)
+    assert sol.success
+    final = multirotor.Multirotor._unpack_state(sol.y[:, -1])
+    np.testing.assert_allclose(final["v"], 0.0, atol=1e-8)  # settled
+    np.testing.assert_allclose(final["w"], 0.0, atol=1e-8)
+    assert np.linalg.norm(final["x"]) > 0.05  # SE3 settles off the point (no integral action)
+    psi, theta, phi = Rotation.from_quat(final["q"]).as_euler("ZYX")
+    ours = A.solve_trim(p, p, RotorDrag(), jnp.asarray(wind), jnp.zeros(3), p.m, psi)
+    assert bool(ours.converged)
+    np.testing.assert_allclose(np.asarray(ours.trim.attitude), [phi, theta], atol=1e-6)
+    assert np.hypot(phi, theta) > 0.2  # a real tilt into the wind
+    np.testing.assert_allclose(
+        np.sqrt(np.asarray(ours.rotor_speeds_sq)), final["rotor_speeds"], rtol=1e-6
+    )

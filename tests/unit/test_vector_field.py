@@ -40,10 +40,13 @@ def test_ensemble_field_equals_single_case_loop(batch, t):
         batch.model,
         aerodynamics=batch.aerodynamics,
         group_size=GROUP,
+        position_loop=batch.position_loop,
     )
     y = _perturbed_state(field, 1)
     dy = eqx.filter_jit(lambda f, tt, yy: f(tt, yy))(field, t, y)
-    loop = A.ClosedLoop.make(controller, aerodynamics=batch.aerodynamics)
+    loop = A.ClosedLoop.make(
+        controller, aerodynamics=batch.aerodynamics, position_loop=batch.position_loop
+    )
     for i in range(N):
         scenario, vehicle, model = batch.case(i)
         inputs = A.sim.CaseInputs(scenario, vehicle, model, A.DivergenceLimits())

@@ -52,6 +52,12 @@ class AbstractController(eqx.Module):
         return jnp.zeros(4, dtype=getattr(self, self.gain_names[0]).dtype)
 
     @abc.abstractmethod
+    def state_for(self, v: Vec4, ref: ReferenceSample) -> Vec4:
+        """The controller state for which the virtual input at zero tracking error (e = ed =
+        0) with reference ``ref`` is ``v`` (a trimmed start: the controller already holds
+        the equilibrium's inputs)."""
+
+    @abc.abstractmethod
     def virtual_input(
         self, e: Vec4, ed: Vec4, ref: ReferenceSample, state: Vec4
     ) -> tuple[Vec4, Vec4]:

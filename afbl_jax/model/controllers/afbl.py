@@ -55,6 +55,9 @@ class AFBL(AbstractController):
         s = ed + self.lam * e
         return ref.rdd + self.lam * ed - state + self.k * s, -s / self.gamma
 
+    def state_for(self, v: Vec4, ref: ReferenceSample) -> Vec4:
+        return ref.rdd - v
+
 
 class AFBLPaper(AbstractController):
     """AFBL exactly as printed: rate error e = rd - qd (eq. 33).
@@ -77,3 +80,6 @@ class AFBLPaper(AbstractController):
     ) -> tuple[Vec4, Vec4]:
         del e
         return ref.rdd - state + self.k * ed, -ed / self.gamma
+
+    def state_for(self, v: Vec4, ref: ReferenceSample) -> Vec4:
+        return ref.rdd - v

@@ -41,3 +41,7 @@ class FBLPID(AbstractController):
     ) -> tuple[Vec4, Vec4]:
         del ref
         return self.P * e + self.I * state + self.D * ed, e
+
+    def state_for(self, v: Vec4, ref: ReferenceSample) -> Vec4:
+        del ref
+        return v / self.I

@@ -1,6 +1,9 @@
 """Monte-Carlo robustness study: case distribution, sampler, chunked runner, reports."""
 
+from ._distribution import ATTITUDE_PROFILES as ATTITUDE_PROFILES
 from ._distribution import DEFAULT_DISTRIBUTION as DEFAULT_DISTRIBUTION
+from ._distribution import MEAN_WIND_CAP as MEAN_WIND_CAP
+from ._distribution import POSITION_PROFILES as POSITION_PROFILES
 from ._distribution import Distribution as Distribution
 from ._distribution import default_distribution as default_distribution
 from ._distribution import load_distribution as load_distribution
@@ -45,6 +48,7 @@ from ._sampler import discrete_variates as discrete_variates
 from ._sampler import draw_variates as draw_variates
 from ._sampler import fixed_variates as fixed_variates
 from ._sampler import nominal_model as nominal_model
+from ._sampler import position_loop_of as position_loop_of
 from ._sampler import sample_cases as sample_cases
 from ._sampler import sample_cases_at as sample_cases_at
 from ._sampler import variate_groups as variate_groups

@@ -19,6 +19,11 @@ from pathlib import Path
 from ...model import AERODYNAMIC_MODELS
 from ...scenario import ROUGHNESS_LENGTH, TURBULENCE_INTENSITIES
 
+MEAN_WIND_CAP = 8.0
+"""Top of the default mean-wind speed range [m/s] at the turbulence altitude: below the flight
+envelope boundary of the distribution's mid-range vehicle with its mean payload (the envelope
+status flags the cases that still cannot be flown: high drag, heavy payload and a gust)."""
+
 DEFAULT_DISTRIBUTION: dict = {
     "payload": {
         "fraction": [0.0, 0.5],  # p, true mass (1 + p) m
@@ -42,6 +47,26 @@ DEFAULT_DISTRIBUTION: dict = {
         "parasitic_drag_vertical": [1.0e-2, 1.83e-2],  # c_D body z [N / (m/s)^2]
         "hub_height": [0.0, 0.05],  # rotor hubs above the centre of mass [m]
     },
+    "flight": {  # how the vehicle flies the case
+        # true: an outer position loop (afbl_jax.PositionHold) holds / steers the horizontal
+        # position around the inner attitude loops, as real multirotors fly; false: no
+        # position loop, roll and pitch follow attitude references and the vehicle drifts
+        # with the air
+        "position_hold": True,
+        # "trimmed": the case starts in equilibrium with its mean wind (trim attitude, rotor
+        # speeds, controller states); "rest": level, at rest, zero controller states
+        "start": "trimmed",
+        "kp": 1.92,  # position loop gains [1/s^2], [1/s], [1/s^3] (x and y)
+        "kd": 2.4,
+        "ki": 0.512,
+        "tilt_max": 0.7,  # tilt limit of the position loop's command [rad]
+        "filter_frequency": 10.0,  # attitude command filter natural frequency [rad/s]
+        "windup_time": 1.0,  # anti-windup back-calculation time constant [s]
+    },
+    "envelope": {  # flight envelope: what a trim must leave for control (afbl_jax.EnvelopeLimits)
+        "tilt": 0.6,  # largest trim tilt [rad]
+        "rotor_reserve": 0.2,  # fraction of each rotor's top thrust kept at trim
+    },
     "pulses": {  # the paper's rectangular disturbance pulses
         "enabled": True,
         "torque": [-0.02, 0.02],  # [N m], each of phi, theta, psi
@@ -61,26 +86,38 @@ DEFAULT_DISTRIBUTION: dict = {
         "buildup_time": [0.5, 3.0],  # per axis [s]
         "start": [2.0, 16.0],  # [s]
     },
-    "mean_wind": {  # steady wind at the altitude, MIL-F-8785C low-altitude log profile
+    "mean_wind": {  # steady wind at the altitude
         "enabled": True,
-        "source": "w20",  # "w20": from W20 of the case's turbulence intensity; "speed": below
-        "speed": [5.0, 5.0],  # mean-wind speed at the altitude [m/s] (source = "speed")
+        # "speed": drawn uniformly from the speed range below; "w20": W20 of the case's
+        # turbulence level (turbulence.intensity = "table") through the MIL-F-8785C
+        # low-altitude log profile
+        "source": "speed",
+        "speed": [0.0, MEAN_WIND_CAP],  # mean-wind speed at the altitude [m/s] ("speed")
         "direction": [-3.141592653589793, 3.141592653589793],  # azimuth it blows towards [rad]
     },
     "turbulence": {  # Dryden, MIL-HDBK-1797 low altitude, sum of sinusoids
         "enabled": True,
+        # "mean_wind": intensities from the case's own mean wind (sigma_w = 0.1 W20, W20 from
+        # the log profile), a continuous range of intensities; "table": a level drawn from
+        # intensity_probabilities (light / moderate / severe: W20 = 15 / 30 / 45 knots)
+        "intensity": "mean_wind",
         "intensity_probabilities": {"none": 0.0, "light": 0.5, "moderate": 0.35, "severe": 0.15},
-        "airspeed": 0.0,  # [m/s] carrying the frozen field; 0 = the case's mean-wind speed
+        # [m/s] carrying the frozen field; 0 = the case's mean airspeed (position hold: the
+        # mean-wind speed; drifting with the air: 0), at least min_airspeed
+        "airspeed": 0.0,
+        "min_airspeed": 1.0,  # [m/s]
         "altitude": 10.0,  # [m] of the turbulence and of the mean wind
         "n_frequencies": 64,
         "omega_min": 0.0005,  # [rad/s]
         "omega_max": 300.0,  # [rad/s]
     },
-    "initial": {
-        "attitude": [-0.1, 0.1],  # phi, theta, psi at t0 [rad]
-        "rate": [-0.1, 0.1],  # their rates [rad/s]
+    "initial": {  # perturbation added to the start (trimmed or at rest)
+        "attitude": [0.0, 0.0],  # phi, theta, psi at t0 [rad]
+        "rate": [0.0, 0.0],  # their rates [rad/s]
     },
-    "reference": {"profile_probabilities": {"step": 0.5, "sine": 0.5}},
+    # position hold: "hold" (station keeping, yaw and altitude steps) and "waypoints" (position
+    # steps besides); without it the attitude profiles "step" and "sine"
+    "reference": {"profile_probabilities": {"hold": 0.5, "waypoints": 0.5}},
     "time": {"t1": 20.0},  # [s], runs start at t0 = 0
     "unmodeled": {  # afbl_jax.UnmodeledDynamics per case; off = the paper's closed loop
         "enabled": False,
@@ -94,6 +131,11 @@ DEFAULT_DISTRIBUTION: dict = {
         "noise_vertical_speed": [0.0, 0.0],  # std of measured zd [m/s]
     },
 }
+
+ATTITUDE_PROFILES = ("step", "sine")
+"""Reference profiles without a position loop (the paper's attitude steps and sines)."""
+POSITION_PROFILES = ("hold", "waypoints")
+"""Reference profiles with a position loop (`afbl_jax.scenario.mission_reference`)."""
 
 # key -> (kind, lower bound or None, bound inclusive?)
 _RANGE_RULES = {
@@ -133,9 +175,10 @@ _RANGE_RULES = {
 }
 _PROB_RULES = {
     ("turbulence", "intensity_probabilities"): TURBULENCE_INTENSITIES,
-    ("reference", "profile_probabilities"): ("step", "sine"),
+    ("reference", "profile_probabilities"): ATTITUDE_PROFILES + POSITION_PROFILES,
 }
 _BOOL_KEYS = {
+    ("flight", "position_hold"),
     ("pulses", "enabled"),
     ("gust", "enabled"),
     ("mean_wind", "enabled"),
@@ -147,16 +190,29 @@ _CHOICE_KEYS = {
     ("unmodeled", "plant"): ("paper", "full"),
     ("aero", "model"): AERODYNAMIC_MODELS,
     ("gust", "magnitude"): ("turbulence", "independent"),
-    ("mean_wind", "source"): ("w20", "speed"),
+    ("mean_wind", "source"): ("speed", "w20"),
+    ("turbulence", "intensity"): ("mean_wind", "table"),
+    ("flight", "start"): ("trimmed", "rest"),
 }
-_NONNEGATIVE_KEYS = {("turbulence", "airspeed")}
+_NONNEGATIVE_KEYS = {("turbulence", "airspeed"), ("turbulence", "min_airspeed")}
 _POSITIVE_KEYS = {
+    ("flight", "kp"),
+    ("flight", "kd"),
+    ("flight", "ki"),
+    ("flight", "filter_frequency"),
+    ("flight", "windup_time"),
     ("turbulence", "altitude"),
     ("turbulence", "omega_min"),
     ("turbulence", "omega_max"),
     ("time", "t1"),
 }
 _INT_KEYS = {("turbulence", "n_frequencies")}
+# key -> (low, high, low inclusive?): numbers in (low, high) or [low, high)
+_INTERVAL_KEYS = {
+    ("flight", "tilt_max"): (0.0, math.pi / 2, False),
+    ("envelope", "tilt"): (0.0, math.pi / 2, False),
+    ("envelope", "rotor_reserve"): (0.0, 1.0, True),
+}
 
 
 def _is_number(x) -> bool:
@@ -242,6 +298,14 @@ def _validate(spec: dict, source: str) -> None:
             elif k in _POSITIVE_KEYS:
                 if not _is_number(value) or value <= 0:
                     raise ValueError(f"{where} must be a finite number > 0, got {value!r}.")
+            elif k in _INTERVAL_KEYS:
+                lo, hi, closed = _INTERVAL_KEYS[k]
+                inside = _is_number(value) and (value >= lo if closed else value > lo)
+                if not (inside and value < hi):
+                    rel = ">=" if closed else ">"
+                    raise ValueError(
+                        f"{where} must be a number {rel} {lo:g} and < {hi:g}, got {value!r}."
+                    )
 
 
 @dataclass(frozen=True)
@@ -267,11 +331,40 @@ class Distribution:
                 f"length {ROUGHNESS_LENGTH:.4f} m, got {turb['altitude']}."
             )
         wind = self.spec["mean_wind"]
-        if turb["airspeed"] == 0 and wind["source"] == "speed" and wind["speed"][0] <= 0:
+        if turb["airspeed"] == 0 and turb["min_airspeed"] <= 0:
             raise ValueError(
-                f"{self.source}: turbulence.airspeed = 0 carries the turbulence at the mean-wind "
-                f"speed, so mean_wind.speed must be > 0 [m/s], got {wind['speed']}; or set "
+                f"{self.source}: turbulence.airspeed = 0 carries the turbulence at the case's mean "
+                "airspeed, which may be 0, so turbulence.min_airspeed must be > 0 [m/s]; or set "
                 "turbulence.airspeed > 0."
+            )
+        if wind["source"] == "w20" and turb["intensity"] != "table":
+            raise ValueError(
+                f'{self.source}: mean_wind.source = "w20" takes W20 from the case\'s turbulence '
+                'level, which needs turbulence.intensity = "table".'
+            )
+        if turb["enabled"] and turb["intensity"] == "mean_wind" and not wind["enabled"]:
+            raise ValueError(
+                f'{self.source}: turbulence.intensity = "mean_wind" scales the turbulence with '
+                "the mean wind, which [mean_wind] enabled = false switches off; set "
+                'turbulence.intensity = "table" (levels drawn from intensity_probabilities) or '
+                "enable the mean wind."
+            )
+        flight = self.spec["flight"]
+        allowed = POSITION_PROFILES if flight["position_hold"] else ATTITUDE_PROFILES
+        probs = self.spec["reference"]["profile_probabilities"]
+        wrong = sorted(n for n, p in probs.items() if p > 0 and n not in allowed)
+        if wrong:
+            mode = "with" if flight["position_hold"] else "without"
+            raise ValueError(
+                f"{self.source}: reference profiles {', '.join(wrong)} cannot be flown {mode} "
+                f"a position loop (flight.position_hold = "
+                f"{str(flight['position_hold']).lower()}); allowed: {', '.join(allowed)}."
+            )
+        if self.spec["envelope"]["tilt"] >= flight["tilt_max"] and flight["position_hold"]:
+            raise ValueError(
+                f"{self.source}: envelope.tilt ({self.spec['envelope']['tilt']} rad) must be below "
+                f"the position loop's tilt limit flight.tilt_max ({flight['tilt_max']} rad), so "
+                "that a trimmed vehicle keeps some tilt for control."
             )
         for section, key in (("payload", "attach_time"), ("pulses", "start"), ("gust", "start")):
             if self.spec[section][key][1] >= t1:
@@ -306,11 +399,18 @@ class Distribution:
 
     @classmethod
     def from_dict(cls, overrides: dict, source: str = "overrides") -> Distribution:
-        """Defaults with ``overrides`` (same sections/keys, partial) applied; validated."""
+        """Defaults with ``overrides`` (same sections/keys, partial) applied; validated.
+
+        Overrides that give ``reference.profile_probabilities`` replace the whole table;
+        overrides that set ``flight.position_hold = false`` without giving it get the attitude
+        profiles {step: 0.5, sine: 0.5}."""
         _validate(overrides, source)
         spec = copy.deepcopy(DEFAULT_DISTRIBUTION)
         for section, body in overrides.items():
             spec[section].update(copy.deepcopy(body))
+        given = overrides.get("reference", {}).get("profile_probabilities")
+        if given is None and not spec["flight"]["position_hold"]:
+            spec["reference"]["profile_probabilities"] = {"step": 0.5, "sine": 0.5}
         return cls(spec, source)
 
     def __hash__(self) -> int:

@@ -3,13 +3,21 @@
 Definitions (all computed from the results table alone, so they can be recomputed from the
 file):
 
-- failure = status != "ok" (diverged or solver_failed); failure rate with a 95 % Wilson score
-  interval;
-- ISE percentiles (P50/P90/P99/max) over the controller's ok runs only; the number of excluded
-  (failed) runs is reported beside them;
+- flyable = the case lies inside the vehicle's flight envelope (status not "outside_envelope",
+  decided before simulating); the fraction outside is reported with its 95 % Wilson interval
+  and such cases are never counted as controller failures;
+- failure = a flyable case whose run diverged or failed (status "diverged" or
+  "solver_failed"); P(failure | flyable) with a 95 % Wilson score interval;
+- ISE percentiles (P50/P90/P99/max) over the controller's ok runs only (position ISE where the
+  cases fly with a position loop); the number of excluded runs (failed or outside the
+  envelope) is reported beside them;
 - paired win rate of a controller over the baseline (fbl when present) for a metric: over the
-  cases where at least one of the two is ok, the fraction where the challenger is ok and either
-  the baseline failed or the challenger's value is strictly smaller; 95 % Wilson interval.
+  flyable cases where at least one of the two is ok, the fraction where the challenger is ok
+  and either the baseline failed or the challenger's value is strictly smaller; 95 % Wilson
+  interval;
+- failure anatomy: per controller and cause (`afbl_jax.metrics.FAILURE_CAUSES`: attitude or
+  altitude limit, non-finite state, solver), the failed runs, their median failure time and the
+  fraction whose rotors were commanded past their limit as they ended (final saturation >= 1).
 
 A number that is undefined (percentiles of a controller without a successful run, a win rate
 over no counted case) is None in the summary, ``null`` in summary.json (strict JSON: never
@@ -28,9 +36,11 @@ from pathlib import Path
 import numpy as np
 
 from ...io import atomic_write_bytes, atomic_write_text
+from ...metrics import FAILURE_CAUSES
 from ...plotting.montecarlo import (
     controller_names,
     figure_ecdf,
+    figure_failure_anatomy,
     figure_heatmaps,
     figure_ise_vs_payload,
     figure_worst,
@@ -39,6 +49,9 @@ from ...scenario import TURBULENCE_INTENSITIES
 from ...sim import STATUS_LABELS
 
 ISE_METRICS = ("ise_attitude", "ise_altitude")
+POSITION_METRIC = "ise_position"
+FAILED = ("diverged", "solver_failed")
+OUTSIDE = "outside_envelope"
 PERCENTILES = (50, 90, 99)
 Z95 = 1.959963984540054
 
@@ -64,23 +77,45 @@ def _per_case(cols: dict, name: str, key: str) -> np.ndarray:
     return np.asarray(cols[key][m])[order]
 
 
+def _ise_metrics(cols: dict) -> tuple[str, ...]:
+    """The ISE columns the report shows: attitude, altitude, and position where any run has
+    one (a position loop)."""
+    pos = cols.get(POSITION_METRIC)
+    has_position = pos is not None and bool(np.any(np.isfinite(np.asarray(pos, dtype=float))))
+    return ISE_METRICS + ((POSITION_METRIC,) if has_position else ())
+
+
 def summarize(cols: dict) -> dict:
     """All report numbers (JSON-serialisable) from the results columns."""
     names = controller_names(cols)
-    out: dict = {"n_cases": int(len(np.unique(cols["case"]))), "controllers": {}, "paired": {}}
+    metrics = _ise_metrics(cols)
+    n_cases = int(len(np.unique(cols["case"])))
+    out: dict = {"n_cases": n_cases, "controllers": {}, "paired": {}}
+    first = _per_case(cols, names[0], "status")
+    outside = int(np.sum(first == OUTSIDE))
+    out["envelope"] = {
+        "outside": outside,
+        "flyable": n_cases - outside,
+        "outside_fraction": outside / n_cases if n_cases else None,
+        "outside_fraction_ci95": list(wilson_interval(outside, n_cases)),
+    }
     for name in names:
         status = _per_case(cols, name, "status")
         ok = status == "ok"
-        n, fails = len(status), int(np.sum(~ok))
+        flyable = status != OUTSIDE
+        failed = np.isin(status, FAILED)
+        n, n_fly, fails = len(status), int(np.sum(flyable)), int(np.sum(failed))
         entry = {
             "n": n,
+            "flyable": n_fly,
             "status_counts": {s: int(np.sum(status == s)) for s in STATUS_LABELS},
             "failures": fails,
-            "failure_rate": fails / n,
-            "failure_rate_ci95": list(wilson_interval(fails, n)),
-            "excluded_from_ise": fails,
+            "failure_rate": fails / n_fly if n_fly else None,
+            "failure_rate_ci95": list(wilson_interval(fails, n_fly)),
+            "excluded_from_ise": int(np.sum(~ok)),
+            "anatomy": _anatomy(cols, name, failed),
         }
-        for metric in ISE_METRICS:
+        for metric in metrics:
             x = _per_case(cols, name, metric)[ok]
             stats = {f"p{q}": float(np.percentile(x, q)) if len(x) else None for q in PERCENTILES}
             stats["max"] = float(np.max(x)) if len(x) else None
@@ -93,7 +128,7 @@ def summarize(cols: dict) -> dict:
         pair = {}
         ok_b = _per_case(cols, baseline, "status") == "ok"
         ok_c = _per_case(cols, name, "status") == "ok"
-        for metric in ISE_METRICS:
+        for metric in metrics:
             xb, xc = _per_case(cols, baseline, metric), _per_case(cols, name, metric)
             counted = ok_b | ok_c
             win = ok_c & (~ok_b | (xc < xb))
@@ -105,6 +140,26 @@ def summarize(cols: dict) -> dict:
                 "ci95": list(wilson_interval(k, n)) if n else None,
             }
         out["paired"][f"{name}_over_{baseline}"] = pair
+    return out
+
+
+def _anatomy(cols: dict, name: str, failed: np.ndarray) -> dict:
+    """Per failure cause of ``name``'s failed runs: count, median failure time [s] and the
+    fraction saturated as they ended (final saturation >= 1)."""
+    if "failure_cause" not in cols:
+        return {}
+    cause = _per_case(cols, name, "failure_cause")
+    t_final = np.asarray(_per_case(cols, name, "t_final"), dtype=float)
+    sat = np.asarray(_per_case(cols, name, "final_saturation"), dtype=float)
+    out = {}
+    for c in FAILURE_CAUSES[1:]:
+        m = failed & (cause == c)
+        k = int(np.sum(m))
+        out[c] = {
+            "failures": k,
+            "median_time": float(np.median(t_final[m])) if k else None,
+            "saturated_fraction": float(np.mean(sat[m] >= 1.0)) if k else None,
+        }
     return out
 
 
@@ -131,7 +186,11 @@ def _fmt(x: float | None) -> str:
 def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     """(title, header, rows) tables shared by the terminal, markdown and HTML outputs."""
     tables = []
-    for metric, unit in (("ise_attitude", "rad^2 s"), ("ise_altitude", "m^2 s")):
+    units = {"ise_attitude": "rad^2 s", "ise_altitude": "m^2 s", "ise_position": "m^2 s"}
+    first = next(iter(summary["controllers"].values()), {})
+    for metric, unit in units.items():
+        if metric not in first:
+            continue
         rows = []
         for name, e in summary["controllers"].items():
             s = e[metric]
@@ -143,40 +202,82 @@ def summary_tables(summary: dict) -> list[tuple[str, list[str], list[list[str]]]
         tables.append(
             (
                 f"{metric} [{unit}] over ok runs",
-                ["controller", "P50", "P90", "P99", "max", "excluded (failed)"],
+                ["controller", "P50", "P90", "P99", "max", "excluded (failed or not flyable)"],
                 rows,
+            )
+        )
+    env = summary.get("envelope")
+    if env is not None:
+        lo, hi = env["outside_fraction_ci95"]
+        frac = env["outside_fraction"]
+        tables.append(
+            (
+                "flight envelope (decided before simulating)",
+                ["cases", "flyable", "outside the envelope", "fraction outside", "95 % Wilson"],
+                [
+                    [
+                        str(summary["n_cases"]),
+                        str(env["flyable"]),
+                        str(env["outside"]),
+                        "-" if frac is None else f"{100 * frac:.2f} %",
+                        f"[{100 * lo:.2f}, {100 * hi:.2f}] %",
+                    ]
+                ],
             )
         )
     rows = []
     for name, e in summary["controllers"].items():
         lo, hi = e["failure_rate_ci95"]
         c = e["status_counts"]
+        rate = e["failure_rate"]
         rows.append(
             [
                 name,
-                str(e["n"]),
+                str(e.get("flyable", e["n"])),
                 str(c["ok"]),
                 str(c["diverged"]),
                 str(c["solver_failed"]),
-                f"{100 * e['failure_rate']:.2f} %",
+                "-" if rate is None else f"{100 * rate:.2f} %",
                 f"[{100 * lo:.2f}, {100 * hi:.2f}] %",
             ]
         )
     tables.append(
         (
-            "failures",
+            "failures of flyable cases",
             [
                 "controller",
-                "runs",
+                "flyable runs",
                 "ok",
                 "diverged",
                 "solver_failed",
-                "failure rate",
+                "P(failure | flyable)",
                 "95 % Wilson",
             ],
             rows,
         )
     )
+    rows = []
+    for name, e in summary["controllers"].items():
+        for cause, a in e.get("anatomy", {}).items():
+            if not a["failures"]:
+                continue
+            rows.append(
+                [
+                    name,
+                    cause,
+                    str(a["failures"]),
+                    f"{a['median_time']:.2f}",
+                    f"{100 * a['saturated_fraction']:.0f} %",
+                ]
+            )
+    if rows:
+        tables.append(
+            (
+                "failure anatomy",
+                ["controller", "cause", "failures", "median time [s]", "saturated as it ended"],
+                rows,
+            )
+        )
     rows = []
     for pair, per in summary["paired"].items():
         for metric, w in per.items():
@@ -226,16 +327,18 @@ def format_summary(summary: dict) -> str:
 
 
 def worst_cases(cols, k: int = 5) -> list[int]:
-    """Case indices of the k worst cases: failed runs first, then by the largest ISE attitude
-    relative to the controller's median (max over controllers)."""
+    """Case indices of the k worst flyable cases: failed runs first, then by the largest ISE
+    attitude relative to the controller's median (max over controllers)."""
     names = controller_names(cols)
     cases = np.sort(np.unique(cols["case"]))
     score = np.zeros(len(cases))
     for name in names:
         ise = _per_case(cols, name, "ise_attitude")
-        ok = _per_case(cols, name, "status") == "ok"
+        status = _per_case(cols, name, "status")
+        ok = status == "ok"
         med = np.median(ise[ok]) if np.any(ok) else 1.0
-        score = np.maximum(score, np.where(ok, ise / med, np.inf))
+        part = np.where(ok, ise / med, np.inf)
+        score = np.maximum(score, np.where(status == OUTSIDE, -np.inf, part))
     order = np.argsort(-score, kind="stable")
     return [int(c) for c in cases[order[:k]]]
 
@@ -281,6 +384,7 @@ def replay_worst(
                 max_steps=settings.max_steps,
                 unmodeled=batch.unmodeled_case(i),
                 aerodynamics=batch.aerodynamics,
+                position_loop=batch.position_loop,
                 saving="dense",  # no host callback: the compiled replay is cached
             )
             for name, ctrl in controllers.items()
@@ -489,6 +593,10 @@ def write_report(
                 ("ise_vs_payload", "ISE vs payload fraction", lambda: figure_ise_vs_payload(cols))
             ]
             makers.append(("ecdf_ise", "ECDF of ISE", lambda: figure_ecdf(cols)))
+        if np.any(np.isin(np.asarray(cols["status"]), FAILED)) and "failure_cause" in cols:
+            makers.append(
+                ("failure_anatomy", "failure time by cause", lambda: figure_failure_anatomy(cols))
+            )
         if replays:
             makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
         for stem, title, make in makers:

@@ -58,9 +58,9 @@ from ...io import (
     git_revision,
     read_table,
 )
-from ...metrics import METRIC_NAMES, metric_columns
+from ...metrics import FAILURE_CAUSES, METRIC_NAMES, metric_columns
 from ...model import AbstractController
-from ...sim import STATUS_NAMES, simulate_batch
+from ...sim import STATUS_NAMES, STATUS_OUTSIDE_ENVELOPE, simulate_batch
 from ._distribution import Distribution
 from ._sampler import (
     GROUP_SIZE,
@@ -214,6 +214,7 @@ def _batch_strategy(name: str) -> Strategy:
             chunk.model,
             unmodeled=chunk.unmodeled,
             aerodynamics=chunk.aerodynamics,
+            position_loop=chunk.position_loop,
             solver=settings.solver,
             rtol=settings.rtol,
             atol=settings.atol,
@@ -269,7 +270,20 @@ def run_chunk(
     strategy = resolve_strategy(strategy)
     settings = (settings or SolverSettings()).with_tolerances_for(strategy)
     out = STRATEGIES[strategy](controller, chunk, settings, local_devices(shard))
-    return {k: np.asarray(v) for k, v in out.items()}
+    out = {k: np.asarray(v) for k, v in out.items()}
+    return mark_outside_envelope(out, chunk)
+
+
+def mark_outside_envelope(metrics: dict[str, np.ndarray], chunk: CaseBatch) -> dict:
+    """``metrics`` with the status of every case outside the flight envelope (its
+    ``envelope_cause`` not 0, decided before simulating) set to ``outside_envelope``, so that
+    it is never counted as a controller failure; its simulated metrics stay as they are."""
+    cause = chunk.inputs.get("envelope_cause")
+    if cause is None:
+        return metrics
+    outside = np.asarray(cause).reshape(-1) != 0
+    status = np.where(outside, STATUS_OUTSIDE_ENVELOPE, np.asarray(metrics["status"]))
+    return {**metrics, "status": status.astype(np.asarray(metrics["status"]).dtype)}
 
 
 def status_label(code) -> np.ndarray:
@@ -298,9 +312,13 @@ def _chunk_table(chunk: CaseBatch, n_valid: int, per_controller: dict[str, dict]
         if np.issubdtype(cols[m].dtype, np.floating):
             cols[m] = cols[m].astype(np.float64)  # one schema whatever the strategy's dtype
     cols["status"] = status_label(cols["status"])
-    for k in ("solver_steps", "turbulence_level", "profile", "delay_samples"):
+    for k in ("solver_steps", "turbulence_level", "profile", "delay_samples", "envelope_cause"):
         if k in cols:
             cols[k] = cols[k].astype(np.int64)
+    if "failure_cause" in cols:
+        cols["failure_cause"] = np.array(
+            [FAILURE_CAUSES[int(c)] for c in cols["failure_cause"]], dtype=object
+        )
     return pa.table(cols)
 
 

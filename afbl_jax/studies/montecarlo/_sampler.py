@@ -25,10 +25,15 @@ from ..._validation import check_seed
 from ...model import (
     AERO_COEFFICIENTS,
     AbstractAerodynamics,
+    EnvelopeLimits,
     LinearDrag,
+    PositionHold,
     QuadrotorParams,
     UnmodeledDynamics,
+    combine_margins,
+    envelope_margin,
     make_aerodynamics,
+    solve_trim,
 )
 from ...scenario import (
     TURBULENCE_INTENSITIES,
@@ -41,12 +46,14 @@ from ...scenario import (
     gust_magnitude,
     mean_wind_speed,
     mean_wind_velocity,
+    mission_reference,
     paper_reference,
+    trim_scenario,
     turbulence_edges,
     turbulence_grid,
     w20,
 )
-from ._distribution import Distribution
+from ._distribution import ATTITUDE_PROFILES, POSITION_PROFILES, Distribution
 
 GROUP_SIZE = 4
 """Cases per drawn control rate (digital control: the cases of a block of `GROUP_SIZE`
@@ -98,12 +105,22 @@ INPUT_COLUMNS: tuple[str, ...] = (
     "initial_thetad",
     "initial_psid",
     "profile",
+    "envelope_margin",
+    "envelope_cause",
+    "trim_tilt",
 )
 """Sampled inputs recorded per case (SI units, rad). ``turbulence_level`` indexes
-`afbl_jax.scenario.TURBULENCE_INTENSITIES` (0 none .. 3 severe); ``profile`` is 0 step, 1 sine.
-Wind: ``mean_wind_speed`` [m/s] at the altitude and ``mean_wind_direction`` [rad] (azimuth the
-air moves towards, from earth x towards y; 0 speed when ``[mean_wind]`` is off);
-``turbulence_airspeed`` [m/s] carries the frozen Dryden field; ``turbulence_sigma_u/v/w`` are
+`afbl_jax.scenario.TURBULENCE_INTENSITIES` (0 none .. 3 severe; with intensities from the mean
+wind, the band its W20 falls in: up to 15, 30, 45 knots); ``profile`` indexes the flight
+mode's profiles (with a position loop 0 hold, 1 waypoints; without, 0 step, 1 sine).
+``envelope_margin`` [-] and ``envelope_cause`` (`afbl_jax.ENVELOPE_CAUSES`) say whether the case
+lies inside the vehicle's flight envelope (margin >= 0, cause 0), decided before simulating
+(`afbl_jax.envelope_margin` at the mean wind and after the gust, with the largest mass);
+``trim_tilt`` [rad] is the tilt of the trim at the mean wind. Wind: ``mean_wind_speed`` [m/s]
+at the altitude and ``mean_wind_direction`` [rad] (azimuth the air moves towards, from earth
+x towards y; 0 speed when ``[mean_wind]`` is off); ``turbulence_airspeed`` [m/s] carries the
+frozen Dryden field (the case's mean airspeed: the mean-wind speed holding position, 0
+drifting with the air; at least ``turbulence.min_airspeed``); ``turbulence_sigma_u/v/w`` are
 the standard's intensities sigma [m/s] and ``turbulence_rms_u/v/w`` the RMS the sum of sinusoids
 realises (the band [omega_min, omega_max] leaves out the rest of sigma^2); u, v, w are along the
 mean wind, across it and vertical. ``gust_amplitude_x/y/z`` [m/s] are the gust's earth-frame
@@ -112,7 +129,32 @@ components), ``gust_speed`` = |gust amplitude vector| [m/s], ``gust_sigma_multip
 standard deviations of the tied magnitude (NaN with independent magnitudes). The aerodynamic
 coefficients are those of `afbl_jax.QuadrotorParams` (the ones the case's model does not use
 are drawn and recorded all the same)."""
-PROFILE_NAMES = ("step", "sine")
+PROFILE_NAMES = ATTITUDE_PROFILES
+"""Reference profiles without a position loop (``profile`` column: 0 step, 1 sine); with one,
+`POSITION_PROFILES` (0 hold, 1 waypoints)."""
+
+
+def _profile_names(spec: dict) -> tuple[str, ...]:
+    """The reference profiles of a distribution's flight mode (the ``profile`` codes)."""
+    return POSITION_PROFILES if spec["flight"]["position_hold"] else ATTITUDE_PROFILES
+
+
+def position_loop_of(distribution: Distribution) -> PositionHold | None:
+    """The position loop a distribution's cases fly with (its ``[flight]`` gains), or None
+    (``flight.position_hold = false``)."""
+    flight = distribution.spec["flight"]
+    if not flight["position_hold"]:
+        return None
+    return PositionHold(
+        kp=flight["kp"],
+        kd=flight["kd"],
+        ki=flight["ki"],
+        tilt_max=flight["tilt_max"],
+        filter_frequency=flight["filter_frequency"],
+        windup_time=flight["windup_time"],
+    )
+
+
 UNMODELED_COLUMNS: tuple[str, ...] = (
     "motor_tau",
     "control_rate",
@@ -146,6 +188,7 @@ class CaseBatch(eqx.Module):
             shared), or None for the paper's closed loop.
         aerodynamics: the aerodynamic model of every case (static; its coefficients are in
             ``vehicle``), from the distribution's ``aero.model``.
+        position_loop: the position loop every case flies with (`position_loop_of`), or None.
     """
 
     scenario: Scenario
@@ -155,6 +198,7 @@ class CaseBatch(eqx.Module):
     index: Array
     unmodeled: UnmodeledDynamics | None = None
     aerodynamics: AbstractAerodynamics = eqx.field(default_factory=LinearDrag)
+    position_loop: PositionHold | None = None
 
     @property
     def input_columns(self) -> tuple[str, ...]:
@@ -185,6 +229,7 @@ class CaseBatch(eqx.Module):
             self.index[idx],
             unmodeled,
             self.aerodynamics,
+            self.position_loop,
         )
 
     def __getitem__(self, indices) -> CaseBatch:
@@ -230,6 +275,13 @@ def _rotate_horizontal(vectors, direction):
     return jnp.tensordot(rot, vectors, axes=1)
 
 
+def _level_drawn(spec: dict) -> bool:
+    """Whether a case draws its turbulence level (a table of levels) rather than taking its
+    intensity from its mean wind."""
+    turb = spec["turbulence"]
+    return bool(turb["enabled"]) and turb["intensity"] == "table"
+
+
 def variate_layout(spec: dict) -> tuple[tuple[str, int, bool], ...]:
     """The standard uniform variates of one case of a distribution ``spec``: (name, size,
     discrete) in the order of `flatten_variates`. Every sampled input is a function of these
@@ -255,7 +307,7 @@ def variate_layout(spec: dict) -> tuple[tuple[str, int, bool], ...]:
     if gust["magnitude"] != "turbulence":
         out += [("gust_horizontal_amplitude", 2, False), ("gust_vertical_amplitude", 1, False)]
     out += [("gust_sign", 3, True), ("gust_buildup", 3, False), ("gust_start", 1, False)]
-    if turb["enabled"]:
+    if _level_drawn(spec):
         out.append(("turbulence_level", 1, True))
     out.append(("turbulence_phase", 3 * n_f, False))
     if mean["source"] != "w20":
@@ -300,7 +352,7 @@ def _draw_variates(key, spec: dict) -> dict[str, Array]:
     v["gust_sign"] = uni(k_sign, (3,))  # jax.random.bernoulli(k, 0.5): u < 0.5
     v["gust_buildup"] = uni(k_build, (3,))
     v["gust_start"] = uni(k_start, (1,))
-    if turb["enabled"]:
+    if _level_drawn(spec):
         v["turbulence_level"] = uni(next(k), (1,))
     v["turbulence_phase"] = uni(next(k), (3 * int(turb["n_frequencies"]),))
     if mean["source"] != "w20":
@@ -317,10 +369,39 @@ def _draw_variates(key, spec: dict) -> dict[str, Array]:
 def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
     """(scenario, vehicle, inputs) of one case from its standard uniform variates ``v``
     (`variate_layout`); a pure, differentiable map (piecewise constant in the discrete
-    variates)."""
+    variates): `_case_parts`, then `_complete_case` (its start and flight envelope)."""
+    return _complete_case(_case_parts(v, spec, tables, edges, omega, references), spec)
+
+
+def _complete_case(parts, spec: dict):
+    """(scenario, vehicle, inputs) from `_case_parts`: the start (trimmed or at rest, plus the
+    initial perturbation) and the flight envelope (`_start_and_envelope`)."""
+    scenario, vehicle, inputs, gust_amplitude, att, rate = parts
+    aerodynamics = make_aerodynamics(spec["aero"]["model"])
+    scenario, margin, cause, tilt = _start_and_envelope(
+        scenario, vehicle, QuadrotorParams(), aerodynamics, spec, gust_amplitude
+    )
+    inputs = {**inputs, "envelope_margin": margin, "envelope_cause": cause, "trim_tilt": tilt}
+    initial = scenario.initial_state.at[3:6].add(att).at[9:12].add(rate)
+    scenario = eqx.tree_at(lambda s: s.initial_state, scenario, initial)
+    return scenario, vehicle, inputs
+
+
+def _batched_cases(vs: dict, spec: dict, tables, edges, omega, references):
+    """`_case_from_variates` of a batch of variates (leading axis n): the case parts
+    vectorised, the start and envelope (Newton trims) case by case (`jax.lax.map`), so that a
+    case's trim is bitwise the same in every batch, whatever its size."""
+    parts = jax.vmap(lambda v: _case_parts(v, spec, tables, edges, omega, references))(vs)
+    return jax.lax.map(lambda p: _complete_case(p, spec), parts)
+
+
+def _case_parts(v: dict, spec: dict, tables, edges, omega, references):
+    """(scenario at rest, vehicle, inputs, gust amplitude (3,) [m/s], initial attitude and
+    rate perturbations) of one case from its standard uniform variates."""
     pay, err, aero = spec["payload"], spec["model_error"], spec["aero"]
     pul, gust, turb, ini = spec["pulses"], spec["gust"], spec["turbulence"], spec["initial"]
-    mean = spec["mean_wind"]
+    mean, flight = spec["mean_wind"], spec["flight"]
+    hold = bool(flight["position_hold"])
     inputs = {}
     inputs["payload_fraction"] = _scaled(v["payload_fraction"][0], pay["fraction"])
     inputs["payload_time"] = _scaled(v["payload_time"][0], pay["attach_time"])
@@ -352,22 +433,36 @@ def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
         jnp.stack([zero3, jnp.array([0.0, 0.0, 1.0]) * force_z]),
     )
 
-    # turbulence level, its standard's intensities and the wind that carries it
-    sigma_table, scale_table, w20_table = tables
-    if turb["enabled"]:
+    # the mean wind, the turbulence's intensities and the airspeed that carries it
+    sigma_table, scale_table, w20_table, sigma_per_w20, profile_gain = tables
+    if _level_drawn(spec):
         level = _choice(
             v["turbulence_level"][0], turb["intensity_probabilities"], TURBULENCE_INTENSITIES
         )
     else:
         level = jnp.asarray(0)
-    sigma, scale = jnp.asarray(sigma_table)[level], jnp.asarray(scale_table)[level]
     if mean["source"] == "w20":
         speed = mean_wind_speed(jnp.asarray(w20_table)[level], turb["altitude"])
     else:
         speed = _scaled(v["mean_wind_speed"][0], mean["speed"])
+    speed = speed if mean["enabled"] else jnp.zeros_like(speed)
+    scale = jnp.asarray(scale_table)[level]
+    if not turb["enabled"]:
+        sigma = jnp.zeros(3)
+    elif turb["intensity"] == "table":
+        sigma = jnp.asarray(sigma_table)[level]
+    else:  # the case's own mean wind: sigma = W20 x (sigma per W20), W20 from the log profile
+        w20_case = speed * profile_gain
+        sigma = w20_case * jnp.asarray(sigma_per_w20)
+        level = jnp.searchsorted(jnp.asarray(w20_table), w20_case, side="left")
+        level = jnp.minimum(level, len(TURBULENCE_INTENSITIES) - 1)
     direction = _scaled(v["mean_wind_direction"][0], mean["direction"])
-    airspeed = speed if turb["airspeed"] == 0 else jnp.asarray(float(turb["airspeed"]))
-    inputs["mean_wind_speed"] = speed if mean["enabled"] else jnp.zeros_like(speed)
+    if turb["airspeed"] > 0:
+        airspeed = jnp.asarray(float(turb["airspeed"]))
+    else:  # position hold: the air passes at the mean-wind speed; drifting: with the air
+        mean_airspeed = speed if hold else jnp.zeros_like(speed)
+        airspeed = jnp.maximum(mean_airspeed, float(turb["min_airspeed"]))
+    inputs["mean_wind_speed"] = speed
     inputs["mean_wind_direction"] = direction
     inputs["turbulence_level"] = level
     inputs["turbulence_airspeed"] = airspeed
@@ -404,6 +499,7 @@ def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
     for j, ax in enumerate("uvw"):
         inputs[f"turbulence_sigma_{ax}"] = sigma[j]
         inputs[f"turbulence_rms_{ax}"] = jnp.sqrt(0.5 * jnp.sum(t_amp[j] ** 2))
+    mean_velocity = mean_wind_velocity(speed, direction)
     wind = Wind(
         jnp.full(3, g_start),
         jnp.repeat(buildup[:, None], 3, axis=1),
@@ -411,7 +507,7 @@ def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
         t_amp,
         jnp.asarray(omega),
         phase,
-        mean_wind_velocity(inputs["mean_wind_speed"], direction),
+        mean_velocity,
     )
     wind = eqx.tree_at(
         lambda w: (w.turbulence_cos, w.turbulence_sin),
@@ -427,22 +523,15 @@ def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
     for j, ax in enumerate(("phi", "theta", "psi")):
         inputs[f"initial_{ax}"] = att[j]
         inputs[f"initial_{ax}d"] = rate[j]
-    initial = jnp.zeros(12).at[3:6].set(att).at[9:12].set(rate)
 
-    profile = _choice(v["profile"][0], spec["reference"]["profile_probabilities"], PROFILE_NAMES)
+    profiles = _profile_names(spec)
+    profile = _choice(v["profile"][0], spec["reference"]["profile_probabilities"], profiles)
     inputs["profile"] = profile
-    reference = jax.tree.map(lambda *refs: jnp.stack(refs)[profile], *references)
+    pick = lambda *xs: jnp.stack(xs)[profile]  # noqa: E731
+    attitude_refs, position_refs = references
+    reference = jax.tree.map(pick, *attitude_refs)
+    position = None if position_refs is None else jax.tree.map(pick, *position_refs)
 
-    scenario = Scenario(
-        reference,
-        pulses,
-        inputs["payload_fraction"],
-        inputs["payload_time"],
-        initial,
-        0.0,
-        spec["time"]["t1"],
-        wind,
-    )
     nominal = QuadrotorParams()
     omega_max = jnp.sqrt(inputs["thrust_to_weight"] * nominal.m * nominal.g / (4.0 * nominal.b))
     aero_fields = ("drag_coefficient", "cp_offset", *AERO_COEFFICIENTS, "hub_height")
@@ -467,7 +556,41 @@ def _case_from_variates(v: dict, spec: dict, tables, edges, omega, references):
             *(inputs[name] for name in aero_fields),
         ),
     )
-    return scenario, vehicle, inputs
+
+    scenario = Scenario(
+        reference,
+        pulses,
+        inputs["payload_fraction"],
+        inputs["payload_time"],
+        jnp.zeros(12),
+        0.0,
+        spec["time"]["t1"],
+        wind,
+        position,
+    )
+    return scenario, vehicle, inputs, amp, att, rate
+
+
+def _start_and_envelope(scenario, vehicle, model, aerodynamics, spec, gust_amplitude):
+    """The case's start (trimmed, or at rest) and its flight-envelope margin, cause and trim
+    tilt [rad]: the binding one of the trims at the mean wind with the mass at t0, and with the
+    largest mass (a payload attached later) at the mean wind and at the wind after the gust (a
+    held gust counts, a downdraft too). Drifting with the air, the vehicle's velocity follows
+    the wind of each trim (no airspeed)."""
+    hold = bool(spec["flight"]["position_hold"])
+    limits = EnvelopeLimits(spec["envelope"]["tilt"], spec["envelope"]["rotor_reserve"])
+    trimmed, solution = trim_scenario(scenario, vehicle, model, aerodynamics, position_hold=hold)
+    heavy = vehicle.m * (1.0 + jnp.maximum(scenario.payload_fraction, 0.0))
+    heavy = jnp.maximum(heavy, vehicle.m * scenario.mass_factor(scenario.t0))
+    margins = [envelope_margin(solution, vehicle, limits)]
+    for wind in (scenario.wind.mean, scenario.wind.mean + gust_amplitude):
+        velocity = jnp.zeros_like(wind) if hold else wind
+        other = solve_trim(vehicle, model, aerodynamics, wind, velocity, heavy)
+        margins.append(envelope_margin(other, vehicle, limits))
+    margin, cause = combine_margins(*margins)
+    if spec["flight"]["start"] == "trimmed":
+        scenario = trimmed
+    return scenario, margin, cause, solution.tilt
 
 
 def nominal_model(distribution: Distribution) -> QuadrotorParams:
@@ -560,6 +683,7 @@ def _sample_index(distribution: Distribution, index: np.ndarray, seed: int) -> C
         index,
         unmodeled,
         make_aerodynamics(distribution.spec["aero"]["model"]),
+        position_loop_of(distribution),
     )
 
 
@@ -692,12 +816,20 @@ def cases_from_variates(distribution: Distribution, u, index=None) -> CaseBatch:
         index,
         None,
         make_aerodynamics(distribution.spec["aero"]["model"]),
+        position_loop_of(distribution),
     )
 
 
 @functools.lru_cache(maxsize=8)
 def _map_sampler(distribution: Distribution):
-    return jax.jit(jax.vmap(case_map(distribution)))
+    spec = distribution.spec
+    layout = variate_layout(spec)
+    tables, edges, omega, references = _sampler_tables(distribution)
+    return jax.jit(
+        lambda u: _batched_cases(
+            unflatten_variates(u, layout), spec, tables, edges, omega, references
+        )
+    )
 
 
 def unmodeled_statics(distribution: Distribution) -> dict:
@@ -785,7 +917,7 @@ def shared_slot_references(references: list[Reference]) -> list[Reference]:
     for r in ref:
         slot_free, sine_free = r.step_size == 0, r.sine_amplitude == 0
         out.append(
-            Reference(
+            type(r)(
                 r.offset,
                 np.where(slot_free, start, r.step_start),
                 r.step_size,
@@ -805,12 +937,22 @@ def _sampler_tables(distribution: Distribution):
     omega, _ = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
     edges = turbulence_edges(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
     levels = [dryden_low_altitude(name, turb["altitude"]) for name in TURBULENCE_INTENSITIES]
+    light_sigma, _ = dryden_low_altitude("light", turb["altitude"])
     tables = (
         np.stack([sig for sig, _ in levels]),
         np.stack([scale for _, scale in levels]),
         np.array([w20(name) for name in TURBULENCE_INTENSITIES]),
+        light_sigma / w20("light"),  # sigma per W20 (the low-altitude model is linear in W20)
+        1.0 / float(mean_wind_speed(1.0, turb["altitude"])),  # W20 / W(h) of the log profile
     )
-    references = shared_slot_references([paper_reference(p) for p in PROFILE_NAMES])
+    if spec["flight"]["position_hold"]:
+        pairs = [mission_reference(p) for p in POSITION_PROFILES]
+        references = (
+            shared_slot_references([a for a, _ in pairs]),
+            shared_slot_references([b for _, b in pairs]),
+        )
+    else:
+        references = (shared_slot_references([paper_reference(p) for p in ATTITUDE_PROFILES]), None)
     return tables, edges, omega, references
 
 
@@ -820,9 +962,12 @@ def _batch_sampler(distribution: Distribution):
     spec = distribution.spec
     tables, edges, omega, references = _sampler_tables(distribution)
     return jax.jit(
-        jax.vmap(
-            lambda key: _case_from_variates(
-                _draw_variates(key, spec), spec, tables, edges, omega, references
-            )
+        lambda keys: _batched_cases(
+            jax.vmap(lambda key: _draw_variates(key, spec))(keys),
+            spec,
+            tables,
+            edges,
+            omega,
+            references,
         )
     )

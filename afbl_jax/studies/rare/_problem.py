@@ -2,7 +2,10 @@
 
 A case of a `Distribution` is a point u of the unit cube [0, 1]^D of standard variates
 (`afbl_jax.studies.montecarlo.draw_variates`; the distribution is uniform there). `MarginProblem`
-evaluates, for one controller, the failure margin (`afbl_jax.failure_margin`, > 0 = failed) of
+evaluates, for one controller, the margin of a controller failure of a batch of such points:
+min(failure margin, envelope margin) (`afbl_jax.failure_margin` of the run, > 0 = the run
+failed; the case's flight-envelope margin, >= 0 inside the envelope), > 0 exactly when a case
+inside the vehicle's flight envelope failed (a case outside it is never a controller failure),
 a batch of such points on the fast path (`afbl_jax.simulate_batch`, ensembles) and its
 differentiable variant with gradients (`afbl_jax.smooth_margin` through ``jax.vmap`` of
 `afbl_jax.simulate`, diffrax's recursive-checkpoint adjoint, float64), and counts the
@@ -37,6 +40,7 @@ from ..montecarlo import (
     discrete_variates,
     fixed_variates,
     nominal_model,
+    position_loop_of,
     variate_names,
 )
 
@@ -91,6 +95,10 @@ class MarginProblem:
     def metrics(self, u) -> BatchMetrics:
         """`BatchMetrics` of the cases at variates u (n, D) (padded to whole ensemble groups;
         n = 0: empty fields, nothing solved)."""
+        return self.evaluate(u)[0]
+
+    def evaluate(self, u) -> tuple[BatchMetrics, np.ndarray]:
+        """(`BatchMetrics`, envelope margins (n,)) of the cases at variates u (n, D)."""
         u = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
         if u.ndim != 2 or u.shape[1] != self.dimension:
             raise ValueError(
@@ -98,17 +106,19 @@ class MarginProblem:
             )
         n = u.shape[0]
         if n == 0:
-            return _empty_metrics(self.dtype)
+            return _empty_metrics(self.dtype), np.zeros(0)
         pad = -n % GROUP_SIZE
         if pad:
             u = np.concatenate([u, np.repeat(u[-1:], pad, axis=0)])
         chunk = cases_from_variates(self.distribution, u)
+        envelope = np.asarray(chunk.inputs["envelope_margin"])[:n]
         m = simulate_batch(
             self.controller,
             chunk.scenario,
             chunk.vehicle,
             chunk.model,
             aerodynamics=chunk.aerodynamics,
+            position_loop=chunk.position_loop,
             strategy="ensemble",
             rtol=self.rtol,
             atol=self.atol,
@@ -118,11 +128,17 @@ class MarginProblem:
             dtype=self.dtype,
         )
         self.simulations += n
-        return jax.tree.map(lambda x: x[:n], m)
+        return jax.tree.map(lambda x: x[:n], m), envelope
 
     def margin(self, u) -> np.ndarray:
-        """Failure margins (n,) at variates u (n, D) (clipped to [0, 1]); > 0 = failed."""
-        return np.asarray(failure_margin(self.metrics(u), *self._limits()))
+        """Controller-failure margins (n,) at variates u (n, D) (clipped to [0, 1]): the
+        smaller of the run's failure margin and the case's envelope margin; > 0 = a case
+        inside the flight envelope failed."""
+        return self.margin_of(*self.evaluate(u))
+
+    def margin_of(self, metrics: BatchMetrics, envelope: np.ndarray) -> np.ndarray:
+        """`margin` from the runs' metrics and the cases' envelope margins (`evaluate`)."""
+        return np.minimum(np.asarray(failure_margin(metrics, *self._limits())), envelope)
 
     def value_and_grad(
         self, u, output: str = "margin"
@@ -160,7 +176,7 @@ def _empty_metrics(dtype) -> BatchMetrics:
     """`BatchMetrics` of no cases, with the dtypes of the ensemble path's."""
     f = jnp.zeros((0,), np.dtype("float64" if dtype is None else dtype))
     i = jnp.zeros((0,), jnp.int32)
-    return BatchMetrics(f, f, f, f, i, f, i, i, f, f, f)
+    return BatchMetrics(f, f, f, f, i, f, i, i, f, f, f, f, f, i, f)
 
 
 @functools.lru_cache(maxsize=16)
@@ -183,12 +199,14 @@ def _grad_function(
     )
     one_case = case_map(p.distribution)
     aero = make_aerodynamics(p.distribution.spec["aero"]["model"])
+    position_loop = position_loop_of(p.distribution)
     model = nominal_model(p.distribution)
     att = FAILURE_ATTITUDE if p.attitude_limit is None else p.attitude_limit
     alt = FAILURE_ALTITUDE if p.altitude_limit is None else p.altitude_limit
 
     def margins(controller, u):
-        scenario, vehicle, _ = one_case(u)
+        scenario, vehicle, inputs = one_case(u)
+        envelope = inputs["envelope_margin"]
         r = simulate(
             controller,
             scenario,
@@ -199,12 +217,13 @@ def _grad_function(
             n_save=p.n_save,
             max_steps=p.max_steps,
             aerodynamics=aero,
+            position_loop=position_loop,
         )
         m = metrics_from_result(r, vehicle, model)
-        exact = failure_margin(m, *p._limits())
+        exact = jnp.minimum(failure_margin(m, *p._limits()), envelope)
         if output == "ise_attitude":
             return m.ise_attitude, exact
-        return smooth_margin(m, att, alt, p.temperature), exact
+        return jnp.minimum(smooth_margin(m, att, alt, p.temperature), envelope), exact
 
     def one(controller, u):
         (value, exact), grad = jax.value_and_grad(margins, argnums=1, has_aux=True)(controller, u)

@@ -38,7 +38,6 @@ from ...io import (
     gains_to_dict,
     run_metadata,
 )
-from ...metrics import failure_margin
 from ...model import AbstractController
 from ...sim import simulate
 from ..montecarlo import (
@@ -160,6 +159,7 @@ def _replay(problem: MarginProblem, u):
         atol=problem.atol,
         n_save=problem.n_save,
         aerodynamics=batch.aerodynamics,
+        position_loop=batch.position_loop,
         saving="dense",  # no host callback: the compiled replay is cached
     )
 
@@ -357,9 +357,8 @@ def _sensitivity(problem: MarginProblem, n: int, seed: int, batch: int = 512) ->
     def f(x):
         margins, ises = [], []
         for k in tqdm(range(0, len(x), batch), desc="Sobol", unit="batch"):
-            m = problem.metrics(x[k : k + batch])
-            limits = (problem.attitude_limit, problem.altitude_limit)
-            margins.append(np.asarray(failure_margin(m, *limits)))
+            m, envelope = problem.evaluate(x[k : k + batch])
+            margins.append(problem.margin_of(m, envelope))
             ises.append(np.asarray(m.ise_attitude))
         margin = np.concatenate(margins)
         return {

@@ -21,7 +21,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ...model import AbstractAerodynamics, LinearDrag, QuadrotorParams
+from ...model import AbstractAerodynamics, LinearDrag, PositionHold, QuadrotorParams
 from ...scenario import Scenario
 from ..montecarlo import Distribution, sample_cases
 
@@ -71,6 +71,8 @@ class TuningCases(eqx.Module):
         model: the controller's nominal `QuadrotorParams` (unbatched).
         inputs: sampled numbers per case (arrays of shape (n,) or (n, k)).
         aerodynamics: the cases' aerodynamic model (static; coefficients in ``vehicle``).
+        position_loop: the position loop the cases fly with (`afbl_jax.PositionHold`), or
+            None.
     """
 
     scenario: Scenario
@@ -78,6 +80,7 @@ class TuningCases(eqx.Module):
     model: QuadrotorParams
     inputs: dict
     aerodynamics: AbstractAerodynamics = eqx.field(default_factory=LinearDrag)
+    position_loop: PositionHold | None = None
 
     @property
     def n_cases(self) -> int:

@@ -280,6 +280,7 @@ def case_costs(
         cases.model,
         unmodeled=unmodeled,
         aerodynamics=cases.aerodynamics,
+        position_loop=cases.position_loop,
         strategy="ensemble",
         # the differentiable ensemble path (the lean loop is forward-mode only); every method
         # (gradient or CMA-ES) evaluates the same objective
