@@ -1,7 +1,7 @@
 """The documentation's result files: record a command's output with its provenance, and render
 the tables of README.md and docs/*.md from those files.
 
-    python docs/results.py record NAME [--keep PATH ...] -- COMMAND [ARG ...]
+    python docs/results.py record NAME [--keep PATH ...] [--copy PATH DEST ...] -- COMMAND ...
     python docs/results.py render            # rewrite every rendered block in place
     python docs/results.py render --check    # exit 1 if a block differs from its file
 
@@ -93,8 +93,12 @@ def load_average() -> str:
         return "unknown"
 
 
-def record(name: str, command: list[str], keep: list[str]) -> Path:
-    """Run ``command`` in a temporary folder and write docs/results/NAME.json (see above)."""
+def record(
+    name: str, command: list[str], keep: list[str], copy: list[tuple[str, str]] = ()
+) -> Path:
+    """Run ``command`` in a temporary folder and write docs/results/NAME.json (see above);
+    ``copy``: (file the command writes, destination relative to the repository) pairs, e.g. a
+    figure for the documentation."""
     revision = git_revision()
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     load_start = load_average()
@@ -112,6 +116,8 @@ def record(name: str, command: list[str], keep: list[str]) -> Path:
         if rc != 0:
             raise SystemExit(f"record: {shlex.join(command)} exited with status {rc}")
         files = {path: json.loads((Path(work) / path).read_text()) for path in keep}
+        for src, dest in copy:
+            (ROOT / dest).write_bytes((Path(work) / src).read_bytes())
     doc = {
         "provenance": {
             "command": shlex.join(command),
@@ -389,6 +395,14 @@ def main(argv: list[str] | None = None) -> int:
     rec = sub.add_parser("record", help="run a command and keep its output with provenance")
     rec.add_argument("name", help="result file docs/results/NAME.json")
     rec.add_argument("--keep", action="append", default=[], help="JSON file the command writes")
+    rec.add_argument(
+        "--copy",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("FILE", "DEST"),
+        help="copy a file the command writes to DEST (relative to the repository)",
+    )
     argv = sys.argv[1:] if argv is None else argv
     command = argv[argv.index("--") + 1 :] if "--" in argv else []
     ren = sub.add_parser("render", help="rewrite the rendered blocks of README.md and docs/")
@@ -409,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.action == "record":
         if not command:
             parser.error("record: no command given (python docs/results.py record NAME -- CMD)")
-        print(f"wrote {record(args.name, command, args.keep)}")
+        print(f"wrote {record(args.name, command, args.keep, args.copy)}")
     return 0
 
 
