@@ -186,6 +186,27 @@ def render_reproduce(doc: dict) -> str:
     return _fence(format_ise_json(_files(doc, "ise.json"))) + "\n\n" + provenance_line(doc)
 
 
+def render_reproduce_comparison(doc: dict) -> str:
+    """The step scenarios' ISE (attitude / altitude) of each controller beside the paper's
+    Tables 4/5, from the ise.json `afbl reproduce` wrote (|ISE| < 1e-9 shown as ~0)."""
+    from afbl_jax.studies.reproduce import PAPER_ISE
+
+    ise = _files(doc, "ise.json")
+
+    def pair(vals) -> str:
+        return " / ".join("~0" if abs(v) < 1e-9 else f"{v:.4g}" for v in vals)
+
+    rows = []
+    for kind in ("ideal", "uncertain"):
+        per = ise[f"{kind}_step"]
+        cells = [pair((per[c]["ise_attitude"], per[c]["ise_altitude"])) for c in per]
+        paper = [pair(PAPER_ISE[kind][c]) for c in ("fbl", "afbl")]
+        rows.append([f"{kind}, step", *cells, *paper])
+    names = list(ise["ideal_step"])
+    head = ["scenario", *[f"`{c}` att / alt" for c in names], "paper FBL", "paper AFBL"]
+    return _table(head, rows, "l" * len(head)) + "\n\n" + provenance_line(doc)
+
+
 def _bench_rows(doc: dict) -> list[dict]:
     return _files(doc, "bench.json")
 
@@ -294,6 +315,7 @@ def render_unmodeled(doc: dict) -> str:
 
 RENDERERS: dict[str, Callable[[dict], str]] = {
     "reproduce-table": render_reproduce,
+    "reproduce-comparison": render_reproduce_comparison,
     "bench-glance": render_bench_glance,
     "bench-table": render_bench_table,
     "gradient-cost": render_gradient_cost,
