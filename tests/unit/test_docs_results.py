@@ -108,7 +108,8 @@ def test_reproduce_json_is_current(tmp_path):
     """`afbl reproduce` run now gives the numbers of docs/results/reproduce.json (ISE of order
     1e-13 is integration round-off and may differ on another CPU: compared to 1e-9)."""
     r = subprocess.run(
-        [sys.executable, "-m", "afbl_jax.cli", "reproduce", "--out", str(tmp_path), "--no-figures"],
+        [sys.executable, "-c", "import sys; from afbl_jax.cli import main; sys.exit(main())"]
+        + ["reproduce", "--out", str(tmp_path), "--no-figures"],
         capture_output=True,
         text=True,
         timeout=900,
