@@ -34,7 +34,7 @@
 # 2. its gradient through the scan of digital-control interval solves, against a central
 #    difference;
 # 3. L-BFGS, Adam and CMA-ES on the same cases;
-# 4. the comparison studies' results (files written by the commands above, kept in `docs/`).
+# 4. the comparison studies' results (result files of the commands above, in `docs/results/`).
 
 # %%
 import json
@@ -140,22 +140,24 @@ plt.axis("off")
 # %% [markdown]
 # ## 4. The comparison studies
 #
-# The README gives the sizes, run times and the reading of these results; the files are the
-# commands' outputs, kept in `docs/`.
+# The documentation's gain-tuning page shows these results as tables; the files are the
+# commands' outputs with their provenance (command, revision, machine, date), kept in
+# `docs/results/`.
 
 # %%
-for name in ("tuning_gradient_cost.json", "tuning_optimizers.json", "tuning_controllers.txt"):
-    path = DOCS / name
+for name in ("tuning_gradient_cost.json", "tuning_optimizers.json", "tuning_controllers.json"):
+    path = DOCS / "results" / name
     if not path.exists():
         print(f"{path}: not present")
         continue
-    if name.endswith(".json"):
-        doc = json.loads(path.read_text())
-        doc.pop("meta", None)
-        doc.pop("runs", None)
-        print(name, json.dumps(doc, indent=1)[:2500])
-    else:
-        print(path.read_text())
+    doc = json.loads(path.read_text())
+    print(name, "--", doc["provenance"]["command"])
+    (result,) = doc["files"].values()
+    if name == "tuning_controllers.json":
+        print(T.format_controllers(result["heldout"]))
+        continue
+    result = {k: v for k, v in result.items() if k not in ("meta", "runs")}
+    print(json.dumps(result, indent=1)[:2500])
 fig_path = DOCS / "figures" / "tuning_loss_vs_time.png"
 if fig_path.exists():
     plt.figure(figsize=(8, 5))

@@ -35,9 +35,9 @@ finish early and idle). In `afbl_jax.simulate_batch`'s ensemble strategy the cas
 ensemble group share their sample instants, so they must share ``control_rate`` (the
 Monte-Carlo sampler draws one rate per group).
 
-Measured cost of the digital loop (2 cores, float64): a 20 s canonical run at 250 Hz takes
-0.1-0.2 s after compilation (5000 sample intervals of about one solver step each), the
-continuous loop 0.02 s.
+Cost: a digital loop of T seconds at f_c takes T f_c sample intervals (5000 for a 20 s run at
+250 Hz), each at least one solver step, where a continuous loop takes the steps its tolerance
+needs.
 """
 
 from __future__ import annotations

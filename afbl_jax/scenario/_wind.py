@@ -156,7 +156,7 @@ class Wind(eqx.Module):
         check_nonnegative(owner, "turbulence_frequency", self.turbulence_frequency)
 
     def __call__(self, t) -> Vec3:
-        """Wind velocity (x, y, z) in the earth frame at time t [s] [m/s]."""
+        """Wind velocity (x, y, z) [m/s] in the earth frame at time t [s]."""
         tau = (t - self.gust_start[..., None]) / self.gust_buildup
         shape = 0.5 * (1.0 - jnp.cos(jnp.pi * jnp.clip(tau, 0.0, 1.0)))
         gust = jnp.sum(self.gust_amplitude * shape, axis=-2)

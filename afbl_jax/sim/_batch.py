@@ -175,7 +175,7 @@ def _run(
         split = jax.tree.map(lambda x: x.reshape(n_solves, size, *x.shape[1:]), p)
         if jax.tree.leaves(split):
             # scanned over the chunks' inputs: each chunk's slice is materialised once (a
-            # dynamic index inside the solve was re-read at every use: measured 5 % slower)
+            # dynamic index inside the solve would be re-read at every use)
             out = jax.lax.map(lambda q: solve(q, fx), split)
         else:  # every leaf is shared: map over chunk indices
             out = jax.lax.map(lambda i: solve(split, fx), jnp.arange(n_solves))
@@ -211,13 +211,12 @@ CPU_COMPILER_OPTIONS: dict[str, object] = {
 """XLA options the batched solves are compiled with where the installed XLA has them:
 
 - copy insertion by region analysis drops the copies of the Runge-Kutta stage buffers that the
-  while loops carry (measured ~5 % faster on the Monte-Carlo default on a CPU, bitwise the
-  same results);
+  while loops carry (bitwise the same results);
 - XLA's YNNPACK library fusions for dot products only: XLA's CPU backend also hands
   reductions to YNNPACK by default, and on an ensemble's reductions (the error norm over the
-  cases, the per-case sums of the vector field) that library call was measured ~4x slower
-  than XLA's own loop (one 2048-case ensemble per device). The sums then run in XLA's order,
-  so results differ from the default compilation by rounding only;
+  cases, the per-case sums of the vector field) that is one library call per small sum instead
+  of XLA's own fused loop. The sums then run in XLA's order, so results differ from the
+  default compilation by rounding only;
 - optimization barriers kept until code generation (XLA's ``cse_barrier_expander`` pass, which
   removes them before fusion, disabled): XLA's CPU fusion recomputes an expensive value such as
   a sine inside every fused consumer, and a barrier is the one way to have it computed once
@@ -226,14 +225,14 @@ CPU_COMPILER_OPTIONS: dict[str, object] = {
   materialise=True)``). Barriers are identities: on the benchmark's cases every metric is
   bitwise the same as without this option (tested); on Monte-Carlo cases the differently fused
   turbulence sum rounds differently (at most one float64 ulp in the field), so solves agree to
-  the solver's tolerance. Measured 1.29-1.42x on the vector field."""
+  the solver's tolerance. The docs' benchmark page describes their effect."""
 
 
 @functools.cache
 def batch_compiler_options(platform: str = "cpu") -> dict[str, object]:
     """The XLA options `simulate_batch` compiles with on devices of ``platform``: on CPUs,
     those of `CPU_COMPILER_OPTIONS` that this jax and XLA know (each checked once, on a
-    trivial program); on other platforms none (the options were measured on CPUs only)."""
+    trivial program); on other platforms none (the options concern XLA's CPU backend)."""
     if platform != "cpu":
         return {}
     known = {}

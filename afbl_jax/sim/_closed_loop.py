@@ -294,10 +294,9 @@ class ClosedLoop(eqx.Module):
         """Signals at (t, y) and dy/dt; ``held``: the digital controller's held command
         (None: the controller acts on the state now). ``materialise`` (static; forward-only
         integrators): compute the controller's output once behind an XLA optimisation
-        barrier, which XLA otherwise recomputes inside each of the mixer's consumers
-        (measured 15-20 % of a batched forward solve). Not for differentiated paths: reverse
-        mode through the barrier gave gradients 0.4 % off central differences on Monte-Carlo
-        cases (the primal values are unchanged)."""
+        barrier, which XLA otherwise recomputes inside each of the mixer's consumers. Not for
+        differentiated paths: reverse mode through the barrier does not give the derivative of
+        the solve to the solver's accuracy (the primal values are unchanged)."""
         sc, vehicle = inputs.scenario, inputs.vehicle
         if held is None:
             measured = self.plant.to_paper_layout(y.plant)

@@ -12,8 +12,8 @@ ENV_VAR = "AFBL_CPU_DEVICES"
 def configure_cpu_devices(n: int | None = None) -> int | None:
     """Let XLA split the CPU into ``n`` devices (default: ``$AFBL_CPU_DEVICES``, else the number
     of cores), so `afbl_jax.simulate_batch` and the Monte-Carlo runner can give each core its
-    own share of the cases (`jax.shard_map`; one device per core measured ~2x faster than one
-    device on a 2-core machine).
+    own share of the cases (`jax.shard_map`; with a single CPU device XLA keeps a batched solve
+    on about one core).
 
     Sets ``XLA_FLAGS=--xla_force_host_platform_device_count=n``; it must run before JAX's first
     computation (the ``afbl`` command and the study scripts call it at start-up). Accelerators

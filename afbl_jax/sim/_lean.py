@@ -12,7 +12,8 @@ machinery, events, progress meter or adjoint bookkeeping.
 
 Layout: every leaf of the state and of ``args`` has the case axis LAST (``(..., n)``; a
 per-case scalar is ``(n,)``), so that the solver's stage arithmetic runs over long contiguous
-case rows (measured ~2x faster than a case axis first or a ``vmap`` over groups). Times are
+case rows (rather than short per-case vectors, as with a case axis first or a ``vmap`` over
+groups). Times are
 per group, shape (G,); the solver sees them per case (repeated over each group's cases).
 ``group_field(t, y, args, inputs)`` is the vector field of ONE group: t a scalar, the leaves
 of y and args of shape ``(..., g)``, ``inputs`` that group's slice of ``inputs`` (a pytree
@@ -34,7 +35,7 @@ What a caller needs from the trajectory it computes inside the loop from every s
   (that of the next step): per-case decisions the vector field reads from ``args`` (e.g.
   freezing the cases that crossed a limit). It runs last in the step, on the selected
   state, so that XLA keeps the step one sequence of work (computed beside the solver's
-  stages, it ran on a second thread and the hand-overs cost ~25 % more CPU time).
+  stages, XLA may schedule it on a second thread, and the hand-overs cost CPU time).
 - ``boundary(extra, inputs) -> t`` (G,): a group's steps never cross its t (the next sample
   instant; +inf: none). ``at_boundary`` tells the hook which groups' accepted steps ended there, and
   the step budget ``max_steps`` counts each group's steps since its last boundary (with no
@@ -48,7 +49,7 @@ set). When a group is done, its lane takes the next group not yet started, so no
 for the slowest group of a fixed set. The hooks see the lanes' groups (G = ``lanes`` in the
 shapes above). A newly loaded group's first stage is evaluated afresh (as after a jump time),
 and the initial-step heuristic runs on blocks of ``lanes`` groups, so a group's arithmetic is
-the same as without the queue (bitwise, measured). The leaves of ``extra`` must be per group
+the same as without the queue (bitwise; tested). The leaves of ``extra`` must be per group
 (leading axis G: shape (G,), or one block per group (G, ...)) or per case with the case axis
 last (``(..., n)``); `lean_loop` checks this. A group's slice of a per-group leaf is
 contiguous, of a per-case leaf strided: large per-case records are cheaper as blocks.
@@ -469,7 +470,7 @@ def lean_loop(
             args_new,
             pick(solver_state, c.solver_state),
             # a finished group's controller state is not used again: not selected (a select
-            # here copied its jump times every step and cost ~30 %)
+            # here would copy its jump times every step)
             controller_state,
             jnp.where(keep, jump | jumped, c.made_jump),
             jnp.where(at_boundary, 0, c.budget_used + live),

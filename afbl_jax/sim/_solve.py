@@ -171,7 +171,7 @@ def _finite(y: ClosedLoopState) -> Array:
 
 
 def save_times(scenario: Scenario, n_save: int, dtype) -> Array:
-    """``n_save`` equally spaced times over [t0, t1] [s]."""
+    """``n_save`` equally spaced times [s] over the interval from t0 to t1."""
     return scenario.t0 + (scenario.t1 - scenario.t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
 
 

@@ -147,14 +147,19 @@ def _fields(module: eqx.Module) -> dict:
     return {f: getattr(module, f) for f in module.__dataclass_fields__}
 
 
-def ise_json(result: ReproductionResult) -> dict:
-    """The ise.json document: {scenario: {controller: {ise_attitude, ise_altitude}}, meta}."""
-    doc: dict = result.ise()
-    doc["meta"] = run_metadata(result.config)
-    doc["meta"]["status"] = {
+def _statuses(result: ReproductionResult) -> dict[str, dict[str, str]]:
+    return {
         key: {name: STATUS_NAMES[int(r.status)] for name, r in per.items()}
         for key, per in result.runs.items()
     }
+
+
+def ise_json(result: ReproductionResult) -> dict:
+    """The ise.json document: {scenario: {controller: {ise_attitude, ise_altitude}}, meta}; the
+    runs' statuses are in ``meta["status"][scenario][controller]``."""
+    doc: dict = result.ise()
+    doc["meta"] = run_metadata(result.config)
+    doc["meta"]["status"] = _statuses(result)
     return doc
 
 
@@ -170,8 +175,18 @@ def _reduction(fbl: float, afbl: float) -> float:
 
 
 def format_ise_table(result: ReproductionResult) -> str:
-    """Our ISE beside the paper's Tables 4/5, and AFBL-vs-FBL reductions."""
-    ise = result.ise()
+    """Our ISE beside the paper's Tables 4/5, and AFBL-vs-FBL reductions (`format_ise_json` of
+    the run's ise.json numbers)."""
+    return format_ise_json({**result.ise(), "meta": {"status": _statuses(result)}})
+
+
+def format_ise_json(doc: dict) -> str:
+    """The table `afbl reproduce` prints, from an ise.json document (`ise_json`): ISE attitude
+    (eq. 42) [rad^2 s] and altitude (eq. 43) [m^2 s] per scenario and controller beside the
+    paper's Tables 4/5, and the ISE reduction of afbl against fbl [%]."""
+    ise = {key: doc[key] for key in SCENARIO_KEYS}
+    status = doc["meta"]["status"]
+    controllers = list(ise[SCENARIO_KEYS[0]])
     lines = [
         "ISE over 0-20 s (attitude eq. 42 [rad^2 s], altitude eq. 43 [m^2 s]); paper values are "
         "Tables 4/5,",
@@ -186,10 +201,9 @@ def format_ise_table(result: ReproductionResult) -> str:
             paper = PAPER_ISE[kind].get(name) if profile == "step" else None
             pa = f"{paper[0]:.4f}" if paper else "-"
             pz = f"{paper[1]:.4f}" if paper else "-"
-            status = STATUS_NAMES[int(result.runs[key][name].status)]
             lines.append(
                 f"{key:<16}{name:<12}{vals['ise_attitude']:>12.4e}{pa:>9}"
-                f"{vals['ise_altitude']:>12.4e}{pz:>9}  {status}"
+                f"{vals['ise_altitude']:>12.4e}{pz:>9}  {status[key][name]}"
             )
     tiny = [
         v for per in ise.values() for vals in per.values() for v in vals.values() if abs(v) < 1e-9
@@ -199,7 +213,7 @@ def format_ise_table(result: ReproductionResult) -> str:
             "(|ISE| < 1e-9 is integration round-off around zero: the error stayed at ~0; the ISE "
             "is an ODE state and Tsit5/Dopri weights are not all positive.)"
         )
-    if "fbl" in result.controllers and "afbl" in result.controllers:
+    if "fbl" in controllers and "afbl" in controllers:
         lines += [
             "",
             "ISE reduction of afbl vs fbl [%] (paper text: ideal 77 / 36, uncertain 82 / 53)",

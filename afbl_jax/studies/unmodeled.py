@@ -41,7 +41,7 @@ DEFAULT_NOISE_LEVELS = (0.0, 1.0)
 
 @dataclass
 class UnmodeledStudyResult:
-    """Arrays indexed [controller][noise, tau, rate]."""
+    """Per controller, arrays indexed ``(noise, tau, rate)`` over the grid."""
 
     taus: list[float]
     rates: list[float]

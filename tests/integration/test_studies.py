@@ -17,6 +17,31 @@ ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"
 
 
+def _wilson_written_out(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson's (1927) score interval written out, independently of the package's:
+    (p + z^2 / 2n -+ z sqrt(p (1 - p) / n + z^2 / 4n^2)) / (1 + z^2 / n)."""
+    p = k / n
+    centre = p + z**2 / (2 * n)
+    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2))
+    return ((centre - half) / (1 + z**2 / n), (centre + half) / (1 + z**2 / n))
+
+
+def _check_importance_estimate(est: dict, results: Path) -> None:
+    """The importance-sampling estimate and its 95 % interval (normal approximation of the
+    weighted mean, clipped at 0) recomputed from the final stage's samples in results.parquet:
+    w_i = 1[margin_i > 0] exp(log_weight_i)."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(results).to_pydict()
+    w = np.where(np.asarray(t["failure_margin"]) > 0, np.exp(t["log_weight"]), 0.0)
+    p = w.mean()
+    sd = w.std(ddof=1) / math.sqrt(len(w))
+    assert len(w) == est["n_final"] and est["failures"] == int(np.sum(w > 0))
+    assert est["probability"] == pytest.approx(p, rel=1e-12, abs=1e-300)
+    assert est["ci95"] == pytest.approx([max(0.0, p - 1.96 * sd), p + 1.96 * sd], abs=1e-15)
+
+
 def _run(script: str, *args: str, timeout: int = 900) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("XLA_FLAGS", None)
@@ -134,7 +159,10 @@ def test_tune_script(tmp_path):
     doc = json.loads((tmp_path / "evaluation.json").read_text())
     paper, tuned = doc["heldout"]["paper"], doc["heldout"]["tuned"]
     assert paper["n_cases"] == 8 and set(paper["ise"]) >= {"p50", "p90", "p99", "cvar90"}
-    assert tuned["failure_wilson95"][0] <= tuned["failure_rate"] <= tuned["failure_wilson95"][1]
+    for entry in (paper, tuned):
+        k, n = entry["failures"], entry["n_cases"]
+        assert entry["failure_rate"] == k / n
+        assert entry["failure_wilson95"] == pytest.approx(_wilson_written_out(k, n), abs=1e-12)
 
 
 def test_tune_compare_script(tmp_path):
@@ -288,7 +316,7 @@ def test_rare_failures_script(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     doc = json.loads((tmp_path / "r" / "rare_event.json").read_text())
     est = doc["rare_event"]["controllers"]["afbl"]
-    assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
+    _check_importance_estimate(est, tmp_path / "r" / "results.parquet")
     assert est["total_simulations"] >= 32
     r = _run(
         "rare_failures.py",
@@ -315,7 +343,7 @@ def test_rare_failures_script(tmp_path):
     doc = json.loads((tmp_path / "m" / "rare_event.json").read_text())
     assert doc["config"]["dtype"] == "float32" and doc["config"]["rtol"] == 3e-6
     est = doc["rare_event"]["controllers"]["afbl"]
-    assert 0 <= est["ci95"][0] <= est["probability"] <= est["ci95"][1]
+    _check_importance_estimate(est, tmp_path / "m" / "results.parquet")
     assert est["stages"][0]["selected_names"] and est["proposal"]["alpha"] == 0.1
     assert est["total_simulations"] == 16 * (len(est["stages"]) + 1)
     r = _run(
@@ -343,7 +371,14 @@ def test_rare_failures_script(tmp_path):
     doc = json.loads((tmp_path / "s" / "rare_event.json").read_text())
     assert doc["config"]["p0"] == 0.1 and doc["config"]["n_per_stage"] == 20
     est = doc["rare_event"]["controllers"]["afbl"]
-    assert est["method"] == "subset" and 0 <= est["probability"] <= est["ci95"][1]
+    assert est["method"] == "subset"
+    # the log-normal interval p exp(-+ z sqrt(log(1 + cv^2))), from the reported p and cv
+    spread = 1.959963984540054 * math.sqrt(math.log1p(est["cv"] ** 2))
+    p_hat = est["probability"]
+    if p_hat > 0:
+        assert est["ci95"] == pytest.approx([p_hat * math.exp(-spread), p_hat * math.exp(spread)])
+    else:  # no failure at the last level: an upper bound from the level before
+        assert est["ci95"][0] == 0.0 and est["ci95"][1] > 0
     levels = est["stages"]
     assert est["total_simulations"] == 20 + 18 * (len(levels) - 1)  # 2 chains of 10 states
     assert est["probability"] == pytest.approx(

@@ -402,10 +402,10 @@ def test_tolerance_and_argparse_errors_are_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_readme_reads_results_with_core_dependencies(tmp_path, dist):
-    """The README's snippet for reading results runs as written (pyarrow and NumPy are core
-    dependencies; pandas is only needed for its to_pandas() line)."""
-    readme = (ROOT / "README.md").read_text()
+def test_docs_read_results_with_core_dependencies(tmp_path, dist):
+    """The getting-started page's snippet for reading results runs as written (pyarrow and
+    NumPy are core dependencies; pandas is only needed for its to_pandas() line)."""
+    readme = (ROOT / "docs" / "getting_started.md").read_text()
     snippet = readme.split("<!-- read-results -->")[1].split("```python")[1].split("```")[0]
     both = {"fbl": A.make_controller("fbl"), "afbl": A.make_controller("afbl")}
     mc.run_montecarlo(both, dist, CHUNK, SEED, tmp_path / "results" / "mc", chunk_size=CHUNK,

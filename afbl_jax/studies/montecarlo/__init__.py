@@ -1,5 +1,6 @@
 """Monte-Carlo robustness study: case distribution, sampler, chunked runner, reports."""
 
+from .._stats import wilson_interval as wilson_interval
 from ._distribution import ATTITUDE_PROFILES as ATTITUDE_PROFILES
 from ._distribution import DEFAULT_DISTRIBUTION as DEFAULT_DISTRIBUTION
 from ._distribution import MEAN_WIND_CAP as MEAN_WIND_CAP
@@ -10,7 +11,6 @@ from ._distribution import load_distribution as load_distribution
 from ._report import format_summary as format_summary
 from ._report import rare_sections as rare_sections
 from ._report import summarize as summarize
-from ._report import wilson_interval as wilson_interval
 from ._report import write_report as write_report
 from ._runner import ACCELERATOR_CHUNK_SIZE as ACCELERATOR_CHUNK_SIZE
 from ._runner import BATCH_SETTINGS as BATCH_SETTINGS

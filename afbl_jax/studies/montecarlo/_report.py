@@ -47,27 +47,16 @@ from ...plotting.montecarlo import (
 )
 from ...scenario import TURBULENCE_INTENSITIES
 from ...sim import STATUS_LABELS
+from .._stats import wilson_interval
 
 ISE_METRICS = ("ise_attitude", "ise_altitude")
 POSITION_METRIC = "ise_position"
 FAILED = ("diverged", "solver_failed")
 OUTSIDE = "outside_envelope"
 PERCENTILES = (50, 90, 99)
-Z95 = 1.959963984540054
 
 
 NO_OK_RUNS = "no successful runs"
-
-
-def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion k / n (nan, nan for n = 0)."""
-    if n == 0:
-        return (math.nan, math.nan)
-    p = k / n
-    den = 1.0 + z**2 / n
-    centre = (p + z**2 / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / den
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def _per_case(cols: dict, name: str, key: str) -> np.ndarray:

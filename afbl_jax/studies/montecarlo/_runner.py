@@ -13,12 +13,11 @@ every closed loop, including the distribution's ``[unmodeled]`` section):
   multiple of devices x 16, else `GROUP_SIZE` = 4) each solved as one ODE system (shared steps,
   every case meeting its own tolerance), the groups vectorised, each device working through its
   cases `INNER_CHUNK` at a time; default tolerances rtol 3e-6, atol 3e-7 (float32 cannot honour
-  1e-6 / 1e-8). The fastest path that meets the accuracy bound (max relative ISE error <= 1e-3
-  against a tight float64 reference; measured by `afbl bench` and checked by the tests). At
-  rtol 1e-5, atol 1e-6 (the benchmark's ``ensemble_f32`` rows, 1.2-1.4x faster) 3 of 8190 runs
-  of the default 4096-case study missed the bound (up to 1.5e-3, FBL cases driving the rotors
-  into their limit, where the clipping kinks meet float32 round-off); at 3e-6 / 3e-7 none did
-  (max 6.7e-4).
+  1e-6 / 1e-8). The accuracy bound it is held to: max relative ISE error <= 1e-3 against a
+  tight float64 reference (`afbl bench` reports it; the tests check it case by case). The
+  tolerance is tighter than the benchmark's ``ensemble_f32`` rows (rtol 1e-5, atol 1e-6)
+  because cases that drive the rotors into their limits, where the clipping kinks meet
+  float32 round-off, need it to meet the bound.
 - ``"ensemble"``: the same in float64 (default tolerances rtol 1e-6, atol 1e-8).
 - ``"vmap"``: ``jax.vmap`` over `afbl_jax.simulate` in float64 (every case its own step
   sequence; results independent of how cases are chunked).
@@ -27,8 +26,8 @@ Ensemble results depend (within the tolerance) on which cases share a group (fix
 `ensemble_group_size` case indices), not on the chunking among chunk sizes with the same group
 size (with a continuous controller every multiple of devices x 16, which `run_montecarlo`
 makes of a chunk size that is a multiple of 16; with a digital one every multiple of devices x
-`GROUP_SIZE`): 256- and 1024-case chunks give bitwise the same results
-(measured on the default study). Resuming is exact (same chunks). With digital
+`GROUP_SIZE`): chunk sizes with the same groups give bitwise the same results (tested).
+Resuming is exact (same chunks). With digital
 control the cases of a group share their sample instants; the sampler draws one control rate
 per group of `GROUP_SIZE` case indices (`afbl_jax.studies.montecarlo.sample_cases`).
 Other strategies can be added with `register_strategy`. Metric definitions:
@@ -77,12 +76,10 @@ RESULTS_FILE = "results.parquet"
 DEFAULT_STRATEGY = "ensemble_f32"
 CONTINUOUS_GROUP_SIZE = 16
 """Cases per ensemble group with a continuous controller on CPU devices (a multiple of
-`GROUP_SIZE`). Measured on 2048 default Monte-Carlo cases (2 CPU devices, float32, 401
-samples): 9.0 s in groups of 16 against 10.1 s in groups of 4 and 9.7 s in groups of 32; larger
-groups take more shared steps (jump times of every case, the strictest case's error) for less
-per-step work per case (the turbulence lines' cos/sin of omega_k t are computed once per
-group). Accelerators keep `GROUP_SIZE`: there a solve's time follows its slowest group's
-steps, not the work per step (not measured with groups of 16)."""
+`GROUP_SIZE`). Larger groups take more shared steps (the jump times of every case, the
+strictest case's error) for less per-step work per case (the turbulence lines' cos/sin of
+omega_k t are computed once per group). Accelerators keep `GROUP_SIZE`: there a solve's time
+follows its slowest group's steps, not the work per step."""
 
 
 def ensemble_group_size(
@@ -114,9 +111,8 @@ ACCELERATOR_CHUNK_SIZE = 16384
 """Default cases per runner chunk on an accelerator (`default_chunk_size`)."""
 CPU_CHUNK_SIZE = 1024
 """Default cases per runner chunk on CPU devices: several `INNER_CHUNK` per device, so that the
-lean loop's work queue hands a finished group's lane to the next group (the 4096-case study's
-runs: median 44.0 s against 51.7 s with 256-case chunks on 2 CPU devices, the same
-results)."""
+lean loop's work queue hands a finished group's lane to the next group (with one
+`INNER_CHUNK` per device there is nothing to queue); the results do not depend on it."""
 
 
 def _platform(devices=None) -> str:
@@ -126,8 +122,8 @@ def _platform(devices=None) -> str:
 def device_chunk(chunk_size: int | None, devices=None) -> int | None:
     """Cases each device solves at a time for a strategy whose CPU setting is ``chunk_size``:
     that on CPU devices (a working set that stays in cache), None (all of the device's cases
-    at once) on accelerators, where a step of a few hundred cases leaves the GPU idle (the
-    Monte-Carlo default in chunks of 128 ran 21x slower on an H100 than unchunked)."""
+    at once) on accelerators, where a step of a few hundred cases leaves the GPU idle (a GPU
+    step costs about the same for a few hundred cases as for tens of thousands)."""
     return chunk_size if _platform(devices) == "cpu" else None
 
 
@@ -393,9 +389,8 @@ def simulated_size(n_valid: int, chunk_size: int, unit: int, n_chunks: int) -> i
 
     A run of one chunk (``n_chunks`` 1) takes the smallest size of `chunk_ladder` that holds
     its cases (``--cases 1`` simulates one group per device, not a whole chunk). In a longer run
-    every chunk, the last one too, is simulated at ``chunk_size``: a second compiled size would
-    cost more than the padding (measured on 2 CPU cores, default strategy: ~7-8 s to compile
-    each size per controller, about 10 s to simulate a 1024-case chunk of both controllers).
+    every chunk, the last one too, is simulated at ``chunk_size``: compiling a second size per
+    controller costs about as much as simulating a whole chunk, more than the padding.
     Depends on the configuration only, so resumed and multi-host runs simulate the same
     chunks."""
     if n_chunks > 1:

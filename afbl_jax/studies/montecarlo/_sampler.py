@@ -653,7 +653,7 @@ def sample_cases_at(
 
     ``size``: draw a batch of ``size`` cases (the indices, then the last one repeated; the
     padding is dropped), so that the sampler compiled for a chunk of that size is used again
-    instead of compiling one for ``len(index)`` cases (about 2.5 s on a 2-core CPU).
+    instead of compiling one for ``len(index)`` cases.
     """
     index = _case_index(index).reshape(-1)
     if index.size == 0:

@@ -2,6 +2,7 @@
 global sensitivities of the failure margin over a Monte-Carlo distribution's standard
 variates."""
 
+from .._stats import wilson_interval as wilson_interval
 from ._estimators import Estimate as Estimate
 from ._estimators import MixtureProposal as MixtureProposal
 from ._estimators import cross_entropy as cross_entropy
@@ -13,7 +14,6 @@ from ._estimators import normal_tail as normal_tail
 from ._estimators import select_coordinates as select_coordinates
 from ._estimators import to_normal as to_normal
 from ._estimators import to_unit as to_unit
-from ._estimators import wilson as wilson
 from ._falsify import DesignPoint as DesignPoint
 from ._falsify import SearchResult as SearchResult
 from ._falsify import cmaes_search as cmaes_search

@@ -37,6 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special, stats
 
+from .._stats import wilson_interval
+
 Margin = Callable[[np.ndarray], np.ndarray]
 
 
@@ -88,17 +90,6 @@ class Estimate:
         }
 
 
-def wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """Wilson score interval of k successes in n trials."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = k / n
-    den = 1 + z**2 / n
-    centre = (p + z**2 / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / den
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
 def to_unit(z) -> np.ndarray:
     """u = Phi(z), clipped into [0, 1)."""
     return np.minimum(special.ndtr(np.asarray(z, dtype=np.float64)), np.nextafter(1.0, 0.0))
@@ -135,7 +126,7 @@ def crude(g: Margin, dimension: int, n: int, rng: np.random.Generator, batch=Non
     k = int(np.sum(margin > 0))
     p = k / n
     cv = math.sqrt((1 - p) / (n * p)) if k else float("inf")
-    return Estimate("crude", p, cv, wilson(k, n), n, k, n, [], z, margin, np.zeros(n))
+    return Estimate("crude", p, cv, wilson_interval(k, n), n, k, n, [], z, margin, np.zeros(n))
 
 
 def importance_sampling(

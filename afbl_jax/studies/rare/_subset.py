@@ -139,13 +139,13 @@ def subset_simulation(
     probability and delta (its cv); z, margin: the last
     level's samples; log_weight: log of the product of the earlier levels' conditional
     probabilities, the same for every sample (each last-level sample represents that much
-    nominal probability mass times the conditional density: ``mean(exp(log_weight) * (margin
-    > 0))`` is the estimate). If no level reaches 0 within ``max_levels`` (or ties at the top
-    of the margins stop the levels), ``stages[-1]["threshold"] < 0``: the estimate is the last
-    level's failing fraction times the product (0 if none failed: cv inf), and the last stage
-    records ``p_above_threshold``, the estimate of P(g > threshold) >= P(failure), with the
-    upper end of its log-normal 95 % interval, ``p_above_threshold_high``, which is the
-    interval's upper end where no sample failed.
+    nominal probability mass times the conditional density: the estimate is
+    ``mean(exp(log_weight) * (margin > 0))``). If no level reaches 0 within ``max_levels`` (or
+    ties at the top of the margins stop the levels), the last stage's threshold is below 0: the
+    estimate is the last level's failing fraction times the product (0 if none failed: cv
+    inf), and the last stage records ``p_above_threshold``, the estimate of
+    P(g > threshold) >= P(failure), with the upper end of its log-normal 95 % interval,
+    ``p_above_threshold_high``, which is the interval's upper end where no sample failed.
     """
     if not 0 < p0 <= 0.5:
         raise ValueError(f"p0 must lie in (0, 0.5], got {p0}.")
