@@ -158,7 +158,8 @@ def test_killed_worker_costs_no_chunk(cluster, controllers, reference, tmp_path,
     assert killed[0] not in client.run(os.getpid).values()
 
 
-@pytest.mark.parametrize("estimator", ["subset", pytest.param("ce", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", ["subset", "ce"])
 def test_rare_event_batches_equal_one_process(cluster, controllers, tmp_path, estimator):
     """Subset-simulation levels (their samples, then each MCMC step of the chains) and
     cross-entropy stages in batches of 4 samples, one task each: the numbers of the same
