@@ -121,6 +121,8 @@ except importlib.metadata.PackageNotFoundError:  # running from a source tree, n
     __version__ = "0+unknown"
 
 _LAZY = {
+    "DaskExecutor": "afbl_jax.studies.executors",
+    "LocalExecutor": "afbl_jax.studies.executors",
     "tune": "afbl_jax.studies.tuning",
     "TuneConfig": "afbl_jax.studies.tuning",
     "run_tuning": "afbl_jax.studies.tuning",

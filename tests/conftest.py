@@ -57,6 +57,7 @@ SLOWEST_FILES = (
     "test_tuning.py",
     "test_lean.py",
     "test_simulate.py",
+    "test_dask.py",
     "test_reliability_cli.py",
     "test_batch.py",
     "test_montecarlo_unmodeled.py",

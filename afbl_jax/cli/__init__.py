@@ -7,16 +7,19 @@ so numbers keep full precision), parses the arguments and runs the subcommand. E
 takes one path: a single line ``afbl <command>: error: <what was wrong and what is allowed>``
 on stderr, exit status 2, no traceback. That includes argparse's own errors (unknown flag, a
 value of the wrong type, a missing --out: the line ends with "(see afbl <command> --help)"
-instead of argparse's usage block), validation errors of files and settings (ValueError), and
-operating-system errors (OSError: an unreadable file, a folder that cannot be written). Ctrl-C
-prints one line and exits with status 130 (a Monte-Carlo run resumes when the same command is
-run again).
+instead of argparse's usage block), validation errors of files and settings (ValueError),
+operating-system errors (OSError: an unreadable file, a folder that cannot be written), a Dask
+scheduler that does not answer and a Dask worker that cannot import the package
+(``--scheduler``, ``--workers``). A cluster that loses a task for good (`ClusterError`) prints
+one line and exits with status 1. Ctrl-C prints one line and exits with status 130 (a
+Monte-Carlo run resumes when the same command is run again).
 """
 
 from __future__ import annotations
 
 import sys
 
+from ..studies.executors import ClusterError
 from . import bench, falsify, montecarlo, reproduce, tune, tune_compare, unmodeled
 from ._common import Parser, one_line
 
@@ -82,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
         what = f"{err.filename}: {err.strerror}" if err.strerror and err.filename else str(err)
         _error(args.command, f"{what}.")
         return 2
+    except ClusterError as err:  # a Dask cluster lost a task for good (not the input's fault)
+        _error(args.command, f"{err}; run the same command again to resume.")
+        return 1
     except KeyboardInterrupt:
         print(f"afbl {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -147,3 +147,59 @@ def controllers_from_args(args) -> dict:
             )
         controllers[ctrl.name] = ctrl
     return controllers
+
+
+def add_cluster(p: argparse.ArgumentParser, what: str) -> None:
+    """``--scheduler ADDRESS`` / ``--workers N``: run ``what`` as tasks of a Dask cluster."""
+    g = p.add_argument_group(
+        "Dask cluster (needs the cluster extra: pip install afbl-jax[cluster])",
+        f"run {what} as tasks of a Dask cluster: every worker sets JAX up once (CPU devices, "
+        "compilation cache, 64-bit mode) and the numbers are those of a one-process run",
+    )
+    g.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="address of a running Dask scheduler (e.g. tcp://host:8786; from `dask scheduler` "
+        "or dask-jobqueue's SLURMCluster/PBSCluster)",
+    )
+    g.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="start a Dask LocalCluster of N worker processes on this machine (one thread and "
+        "cores / N CPU devices each) for this command",
+    )
+
+
+def executor_from_args(args):
+    """The executor of ``--scheduler`` / ``--workers`` (None: this process); refuses both at
+    once, N < 1 and a missing Dask installation."""
+    import importlib.util
+
+    if args.scheduler is None and args.workers is None:
+        return None
+    if args.scheduler is not None and args.workers is not None:
+        raise UsageError(
+            "give --scheduler (a running cluster) or --workers (a LocalCluster here), not both."
+        )
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}.")
+    if importlib.util.find_spec("distributed") is None:
+        raise UsageError(
+            "--scheduler/--workers need Dask: pip install afbl-jax[cluster] (dask[distributed], "
+            "dask-jobqueue)."
+        )
+    from ..studies.executors import DaskExecutor
+
+    return DaskExecutor(address=args.scheduler, n_workers=args.workers)
+
+
+def executor_words(executor) -> str:
+    """How the command's header line names where it runs ("" in this process)."""
+    if executor is None:
+        return ""
+    if executor.address is None:
+        return f", Dask LocalCluster of {executor.n_workers} worker processes"
+    return f", Dask scheduler {executor.address}"

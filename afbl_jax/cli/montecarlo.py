@@ -8,6 +8,7 @@ from pathlib import Path
 from ._common import (
     Formatter,
     UsageError,
+    add_cluster,
     add_controllers,
     add_out,
     add_progress,
@@ -15,6 +16,8 @@ from ._common import (
     check_out,
     check_tolerances,
     controllers_from_args,
+    executor_from_args,
+    executor_words,
     seed,
 )
 from .falsify import add_failure_limits, check_failure_limits, distribution_from_args
@@ -98,6 +101,7 @@ def register(sub) -> None:
         "failure that centres is and starts ce (0: none, the nominal point)",
     )
     add_failure_limits(rare)
+    add_cluster(p, "the chunks (and --estimator's batches of simulations)")
     hosts = p.add_argument_group(
         "several hosts",
         "run the same command on every host, each with its own --out, then join the "
@@ -169,6 +173,13 @@ def run(args) -> int:
         )
     if (args.host_index is None) != (args.host_count is None):
         raise UsageError("give both --host-index and --host-count (or neither).")
+    executor = executor_from_args(args)
+    if executor is not None and (args.host_index is not None or args.distributed):
+        raise UsageError(
+            "--scheduler/--workers put every chunk on one Dask cluster; --host-index/"
+            "--host-count/--distributed split the chunks between hosts without one: give one "
+            "or the other."
+        )
     if args.host_count is not None and not (0 <= args.host_index < args.host_count):
         raise UsageError(
             f"need 0 <= --host-index < --host-count, got {args.host_index}, {args.host_count}."
@@ -179,7 +190,7 @@ def run(args) -> int:
             f"unknown --estimator {args.estimator!r}; allowed: crude, is, ce, ce-mixture, subset."
         )
     if args.estimator != "crude":
-        return run_rare(args)
+        return run_rare(args, executor)
     if args.attitude_limit is not None or args.altitude_limit is not None:
         raise UsageError(
             "--attitude-limit/--altitude-limit apply to --estimator is|ce|ce-mixture|subset; "
@@ -204,7 +215,8 @@ def run(args) -> int:
     print(
         f"afbl montecarlo: {args.cases} cases x {', '.join(controllers)} (seed {args.seed}, "
         f"chunk {chunk_size}, strategy {strategy}, rtol {settings.rtol:g}, atol "
-        f"{settings.atol:g}, {len(jax.local_devices())} device(s){hosts}) -> {args.out}",
+        f"{settings.atol:g}, {len(jax.local_devices())} device(s){hosts}"
+        f"{executor_words(executor)}) -> {args.out}",
         flush=True,
     )
     run_study(
@@ -221,12 +233,13 @@ def run(args) -> int:
             progress=not args.no_progress,
             host_index=host_index,
             host_count=host_count,
+            executor=executor,
         )
     )
     return 0
 
 
-def run_rare(args) -> int:
+def run_rare(args, executor=None) -> int:
     from ..studies.rare import RareEventConfig, run_rare_event
 
     if args.stage_cases < 2:
@@ -261,7 +274,7 @@ def run_rare(args) -> int:
     )
     print(
         f"afbl montecarlo: --estimator {args.estimator}, {', '.join(controllers)} (seed "
-        f"{args.seed}, {size}) -> {args.out}",
+        f"{args.seed}, {size}{executor_words(executor)}) -> {args.out}",
         flush=True,
     )
     run_rare_event(
@@ -280,6 +293,7 @@ def run_rare(args) -> int:
             rtol=args.rtol or (3e-6 if f32 else 1e-6),
             atol=args.atol or (3e-7 if f32 else 1e-8),
             dtype="float32" if f32 else None,
+            executor=executor,
         )
     )
     print(f"wrote {args.out}/rare_event.json, results.parquet, rare_report.md")

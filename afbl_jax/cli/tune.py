@@ -5,7 +5,16 @@ from __future__ import annotations
 import math
 
 from .._validation import MAX_SEED
-from ._common import Formatter, UsageError, add_out, check_out, check_tolerances, seed
+from ._common import (
+    Formatter,
+    UsageError,
+    add_cluster,
+    add_out,
+    check_out,
+    check_tolerances,
+    executor_from_args,
+    seed,
+)
 
 
 def add_tuning_args(p) -> None:
@@ -137,6 +146,7 @@ def register(sub) -> None:
     p.add_argument(
         "--no-figures", action="store_true", help="skip convergence.png and before_after.png"
     )
+    add_cluster(p, "the CMA-ES populations (--method cmaes)")
     p.set_defaults(func=run)
 
 
@@ -202,6 +212,13 @@ def run(args) -> int:
             f"--seed {args.seed} leaves no default held-out seed (seed + 1 > 2^63 - 1); "
             "give --heldout-seed."
         )
+    executor = executor_from_args(args)
+    if executor is not None and args.method != "cmaes":
+        raise UsageError(
+            f"--scheduler/--workers evaluate CMA-ES populations on a cluster; --method "
+            f"{args.method} takes one gradient step at a time in this process: use --method "
+            "cmaes or leave them out."
+        )
     check_out(args.out)
     config = config_from_args(args)
     run_tuning(
@@ -212,6 +229,7 @@ def run(args) -> int:
         heldout_seed=args.heldout_seed,
         figures=not args.no_figures,
         progress=not args.no_progress,
+        executor=executor,
     )
     print(
         f"wrote {args.out}/gains.json, history.csv, evaluation.txt/json, meta.json"

@@ -19,6 +19,7 @@ from ._closed_loop import ClosedLoopState as ClosedLoopState
 from ._closed_loop import DivergenceLimits as DivergenceLimits
 from ._closed_loop import Held as Held
 from ._closed_loop import Signals as Signals
+from ._devices import CPU_DEVICES_ENV_VAR as CPU_DEVICES_ENV_VAR
 from ._devices import configure_cpu_devices as configure_cpu_devices
 from ._digital import sample_instant as sample_instant
 from ._ensemble import INTEGRATORS as INTEGRATORS

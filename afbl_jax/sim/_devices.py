@@ -7,6 +7,7 @@ import os
 _FLAG = "--xla_force_host_platform_device_count"
 ENV_VAR = "AFBL_CPU_DEVICES"
 """Environment variable overriding the number of CPU devices `configure_cpu_devices` sets."""
+CPU_DEVICES_ENV_VAR = ENV_VAR
 
 
 def configure_cpu_devices(n: int | None = None) -> int | None:

@@ -64,6 +64,7 @@ def test_every_study_script_is_tested():
         "unmodeled_dynamics.py",
         "benchmark.py",
         "rare_failures.py",
+        "dask_scaling.py",  # tests/integration/test_dask.py
     }
     assert {p.name for p in STUDIES.glob("*.py")} == tested
 

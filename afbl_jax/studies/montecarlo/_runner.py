@@ -36,6 +36,7 @@ Other strategies can be added with `register_strategy`. Metric definitions:
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
@@ -60,6 +61,7 @@ from ...io import (
 from ...metrics import FAILURE_CAUSES, METRIC_NAMES, metric_columns
 from ...model import AbstractController
 from ...sim import STATUS_NAMES, STATUS_OUTSIDE_ENVELOPE, simulate_batch
+from ..executors import Executor, LocalExecutor
 from ._distribution import Distribution
 from ._sampler import (
     GROUP_SIZE,
@@ -527,6 +529,7 @@ def run_montecarlo(
     progress: bool = True,
     host_index: int = 0,
     host_count: int = 1,
+    executor: Executor | None = None,
 ):
     """Simulate ``n_cases`` cases for every controller (paired) and return the results table.
 
@@ -560,8 +563,19 @@ def run_montecarlo(
     (`host_chunks`) and returns / writes only their rows; `merge_results` joins the hosts'
     ``out`` folders into the table of a one-host run.
 
+    ``executor``: where the chunks are computed (None: `LocalExecutor`, this process, chunk
+    after chunk). With a `DaskExecutor` each chunk is one task on a worker (the same
+    `sample_cases`, `run_chunk` and chunk table, on the worker's own devices), at most twice
+    the cluster's task slots in flight; this process writes each finished chunk file (once,
+    atomically, with the chunk's lock held meanwhile, as above), so a worker that dies leaves
+    no partial chunk and the scheduler gives its chunk to another worker; workers that join
+    during the run take chunks too. The invocation log records the cluster (``executor``: the
+    scheduler and its workers), which chunks each worker computed (``chunks_by_worker``) and
+    each chunk task's start (Unix time) and duration on its worker [s] (``chunk_tasks``).
+
     Refused before anything is written (ValueError): a results table that cannot fit in this
-    machine's memory (`check_results_fit`), seeds outside [0, 2^63 - 1].
+    machine's memory (`check_results_fit`), seeds outside [0, 2^63 - 1], a Dask scheduler that
+    does not answer or a worker that cannot import this package.
     """
     if not controllers:
         raise ValueError("run_montecarlo needs at least one controller.")
@@ -615,94 +629,127 @@ def run_montecarlo(
         n_mine -= chunk_size - valid(n_chunks - 1)
     chunk_dir = None
     invocation = None
-    if out is not None:
-        out = Path(out)
-        chunk_dir = out / "chunks"
-        text = json.dumps(config.to_dict(), indent=2, sort_keys=True)
-        _check_same_config(out, json.loads(text))  # before writing anything
-        chunk_dir.mkdir(parents=True, exist_ok=True)
-        # which of this host's chunks are done: one directory listing, not one look-up per chunk
-        # (they are read, and checked, in the loop below, under the progress bar)
-        done = [c for c in _listed_chunks(chunk_dir) if c in mine]
-        now = _now()
-        invocation = f"{socket.gethostname()}:{os.getpid()}:{now}"
-        with FileLock(out / FOLDER_LOCK):
-            _check_same_config(out, json.loads(text))  # again, now that no one else writes
-            if not (out / "run.json").exists():
-                atomic_write_text(text, out / "run.json")
-            # provenance of every invocation (a resumed run may span several code revisions)
-            _log_invocation(
-                out,
-                {
-                    "invocation": invocation,
-                    "started_utc": now,
-                    "git_revision": git_revision(),
-                    "chunks_already_done": len(done),
-                    "n_chunks": len(mine),
-                    "host": [int(host_index), int(host_count)],
-                    "devices": [str(d) for d in local_devices(shard)],
-                },
-            )
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    with contextlib.ExitStack() as stack:
+        if out is not None:
+            out = Path(out)
+            chunk_dir = out / "chunks"
+            text = json.dumps(config.to_dict(), indent=2, sort_keys=True)
+            _check_same_config(out, json.loads(text))  # before writing anything
+        # a cluster that cannot be reached or set up raises here, before anything is written
+        session = stack.enter_context((executor or LocalExecutor()).session())
+        local = session.record["kind"] == "local"
+        if out is not None:
+            chunk_dir.mkdir(parents=True, exist_ok=True)
+            # which of this host's chunks are done: one directory listing, not one look-up per
+            # chunk (they are read, and checked, in the loop below, under the progress bar)
+            done = [c for c in _listed_chunks(chunk_dir) if c in mine]
+            now = _now()
+            invocation = f"{socket.gethostname()}:{os.getpid()}:{now}"
+            with FileLock(out / FOLDER_LOCK):
+                _check_same_config(out, json.loads(text))  # again, now that no one else writes
+                if not (out / "run.json").exists():
+                    atomic_write_text(text, out / "run.json")
+                # provenance of every invocation (a resumed run may span several code revisions)
+                _log_invocation(
+                    out,
+                    {
+                        "invocation": invocation,
+                        "started_utc": now,
+                        "git_revision": git_revision(),
+                        "chunks_already_done": len(done),
+                        "n_chunks": len(mine),
+                        "host": [int(host_index), int(host_count)],
+                        "devices": [str(d) for d in local_devices(shard)],
+                        **({} if local else {"executor": session.record}),
+                    },
+                )
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
 
-        bar = tqdm(total=n_mine, unit="case", desc="monte carlo")
-
-    def compute(c: int):
-        start = c * chunk_size
-        chunk = sample_cases(
-            distribution, simulated_size(valid(c), chunk_size, unit, n_chunks), seed, start=start
+            bar = tqdm(total=n_mine, unit="case", desc="monte carlo")
+            if session.note():
+                bar.set_postfix_str(session.note())
+        job = _ChunkJob(
+            controllers,
+            distribution,
+            seed,
+            int(n_cases),
+            chunk_size,
+            unit,
+            n_chunks,
+            strategy,
+            settings,
+            shard if local else None,
+            bool(jax.config.jax_enable_x64),
+            n_dev if shard else 1,
+            _platform(),
         )
-        per = {
-            name: run_chunk(ctrl, chunk, strategy=strategy, settings=settings, shard=shard)
-            for name, ctrl in controllers.items()
-        }
-        return _chunk_table(chunk, valid(c), per)
+        tables: dict[int, object] = {}
+        locks: dict[int, FileLock] = {}
+        by_worker: dict[str, list[int]] = {}
+        timings: dict[str, list[float]] = {}  # chunk -> [start (Unix time), seconds] of its task
+        pending: list[int] = []
 
-    tables: dict[int, object] = {}
-    computed = 0
+        def finished(c: int, table) -> None:
+            tables[c] = table
+            if bar is not None:
+                bar.update(valid(c))
 
-    def claimed(c: int, lock: FileLock):
-        """Chunk c with its lock held: read it if another run finished it, else compute it."""
-        nonlocal computed
-        path = chunk_file(chunk_dir, c)
+        def read(c: int) -> None:
+            path = chunk_file(chunk_dir, c)
+            finished(c, _read_chunk(path, valid(c) * len(controllers), RERUN))
+
+        def claim(chunks, wait: bool):
+            """The chunks of ``chunks`` this run computes, each yielded with its lock held
+            (taken only when the executor asks for the next chunk); the others are read
+            (finished by another run in this folder) or, without ``wait``, left in ``pending``
+            (another run holds their lock)."""
+            for c in chunks:
+                if chunk_dir is None:
+                    yield c
+                    continue
+                if chunk_file(chunk_dir, c).exists():
+                    read(c)
+                    continue
+                lock = _chunk_lock(chunk_dir, c)
+                if wait:
+                    if bar is not None:
+                        bar.set_postfix_str(f"waiting for chunk {c} (another run in this folder)")
+                    lock.acquire()
+                elif not lock.acquire(blocking=False):
+                    pending.append(c)  # another run in this folder is computing it
+                    continue
+                if chunk_file(chunk_dir, c).exists():  # finished while this run waited
+                    lock.release(unlink=True)
+                    read(c)
+                    continue
+                locks[c] = lock
+                yield c
+
+        def compute(chunks) -> None:
+            # each chunk is written here, by this process, once, atomically: a worker that
+            # dies mid-chunk leaves nothing, and its chunk is computed again elsewhere
+            for c, table, info in session.imap(job, chunks):
+                if chunk_dir is not None:
+                    atomic_write_table(table, chunk_file(chunk_dir, c))
+                    locks.pop(c).release(unlink=True)
+                by_worker.setdefault(info["worker"], []).append(c)
+                timings[str(c)] = [info["start_utc"], info["seconds"]]
+                finished(c, table)
+                if bar is not None and session.note():
+                    bar.set_postfix_str(session.note())
+
         try:
-            if path.exists():
-                return _read_chunk(path, valid(c) * len(controllers), RERUN)
-            table = compute(c)
-            atomic_write_table(table, path)
-            computed += 1
-            return table
+            compute(claim(mine, wait=False))
+            compute(claim(list(pending), wait=True))
         finally:
-            lock.release(unlink=path.exists())
-
-    pending = []
-    for c in mine:
-        if chunk_dir is None:
-            tables[c] = compute(c)
-            computed += 1
-        elif chunk_file(chunk_dir, c).exists():
-            tables[c] = _read_chunk(chunk_file(chunk_dir, c), valid(c) * len(controllers), RERUN)
-        else:
-            lock = _chunk_lock(chunk_dir, c)
-            if not lock.acquire(blocking=False):
-                pending.append(c)  # another run in this folder is computing it
-                continue
-            tables[c] = claimed(c, lock)
-        if bar is not None:
-            bar.update(valid(c))
-    for c in pending:
-        if bar is not None:
-            bar.set_postfix_str(f"waiting for chunk {c} (another run in this folder)")
-        lock = _chunk_lock(chunk_dir, c)
-        lock.acquire()
-        tables[c] = claimed(c, lock)
-        if bar is not None:
-            bar.update(valid(c))
+            for c, lock in locks.items():  # interrupted: the chunks in flight stay undone
+                lock.release(unlink=chunk_file(chunk_dir, c).exists())
     if bar is not None:
         bar.set_postfix_str("")
         bar.close()
+    computed = sum(len(v) for v in by_worker.values())
     result = _concat([tables[c] for c in mine])
     if out is not None:
         atomic_write_table(result, out / RESULTS_FILE)
@@ -713,9 +760,63 @@ def run_montecarlo(
                     "invocation": invocation,
                     "finished_utc": _now(),
                     "chunks_computed": computed,
+                    **({} if local else {"chunks_by_worker": by_worker, "chunk_tasks": timings}),
                 },
             )
     return result
+
+
+@dataclass(frozen=True)
+class _ChunkJob:
+    """One chunk of a run as a picklable task: ``job(c)`` samples chunk ``c``'s cases
+    (`sample_cases`), solves them with every controller (`run_chunk`) and returns the chunk's
+    table (the rows of its own cases). ``shard`` None (a task on a Dask worker): split the case
+    axis over the worker's devices where that keeps the run's ensemble groups
+    (`ensemble_group_size` with the run's ``devices``, whole groups on every device), else
+    solve on one device."""
+
+    controllers: dict
+    distribution: Distribution
+    seed: int
+    n_cases: int
+    chunk_size: int
+    unit: int
+    n_chunks: int
+    strategy: str
+    settings: SolverSettings
+    shard: bool | None
+    x64: bool
+    devices: int = 1
+    platform: str = "cpu"
+
+    def valid(self, c: int) -> int:
+        return min(self.chunk_size, self.n_cases - c * self.chunk_size)
+
+    def worker_shard(self, size: int) -> bool:
+        """Whether a chunk simulated at ``size`` cases is split over this process's devices
+        (``shard`` None)."""
+        n = len(jax.local_devices())
+        if n == 1:
+            return False
+        digital = distribution_is_digital(self.distribution)
+        group = ensemble_group_size(digital, size, self.devices, self.platform)
+        here = _platform()
+        whole = size % (n * group) == 0
+        return whole and ensemble_group_size(digital, size, n, here) == group
+
+    def __call__(self, c: int):
+        if bool(jax.config.jax_enable_x64) != self.x64:
+            jax.config.update("jax_enable_x64", self.x64)
+        size = simulated_size(self.valid(c), self.chunk_size, self.unit, self.n_chunks)
+        chunk = sample_cases(self.distribution, size, self.seed, start=c * self.chunk_size)
+        shard = self.worker_shard(size) if self.shard is None else self.shard
+        per = {
+            name: run_chunk(
+                ctrl, chunk, strategy=self.strategy, settings=self.settings, shard=shard
+            )
+            for name, ctrl in self.controllers.items()
+        }
+        return _chunk_table(chunk, self.valid(c), per)
 
 
 def _now() -> str:

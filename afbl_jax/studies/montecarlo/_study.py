@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ...io import FileLock, atomic_write_text, controller_from_dict, run_metadata, table_columns
 from ...model import AbstractController
+from ..executors import Executor
 from ._distribution import Distribution, default_distribution
 from ._report import format_summary, replay_worst, summarize, summary_json, write_report
 from ._runner import FOLDER_LOCK, SolverSettings, merge_results, read_invocations, run_montecarlo
@@ -32,6 +33,8 @@ class StudyConfig:
         settings: solver settings (None: the strategy's defaults).
         report: write report.md/html and figures; progress: show a progress bar.
         host_index, host_count: this host's share of a multi-host run.
+        executor: where the chunks are computed (None: this process; a `DaskExecutor`: tasks
+            of a Dask cluster, see `run_montecarlo`).
     """
 
     controllers: dict[str, AbstractController]
@@ -46,6 +49,7 @@ class StudyConfig:
     progress: bool = True
     host_index: int = 0
     host_count: int = 1
+    executor: Executor | None = None
 
 
 def run_study(config: StudyConfig, echo=print) -> dict | None:
@@ -68,6 +72,7 @@ def run_study(config: StudyConfig, echo=print) -> dict | None:
         progress=c.progress,
         host_index=c.host_index,
         host_count=c.host_count,
+        executor=c.executor,
     )
     elapsed = time.perf_counter() - t_start
     if c.host_count > 1:

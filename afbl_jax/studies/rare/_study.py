@@ -24,6 +24,7 @@ the same for all of them).
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from ...io import (
 )
 from ...model import AbstractController
 from ...sim import simulate
+from ..executors import Executor, LocalExecutor, map_batches
 from ..montecarlo import (
     Distribution,
     cases_from_variates,
@@ -409,7 +411,12 @@ class RareEventConfig:
         attitude_limit [rad], altitude_limit [m]: failure limits (None: divergence limits).
         rtol, atol, n_save: solver settings; dtype: of the margin solves (None: float64;
             "float32": the crude study's ``ensemble_f32`` path, with rtol 3e-6, atol 3e-7);
-            batch: simulations per call.
+            batch: simulations per call (and per task on a cluster).
+        executor: where the estimators' batches of simulations run (None: this process; a
+            `DaskExecutor`: every batch of ``batch`` samples of a crude sample, a
+            cross-entropy stage or a subset-simulation level (its seeds, then each MCMC step
+            of its chains) is one task of a Dask cluster; the same batches, seeds and numbers
+            as in one process). The gradient search of "is"/"ce" runs in this process.
     """
 
     controllers: dict[str, AbstractController]
@@ -434,9 +441,10 @@ class RareEventConfig:
     n_save: int = 401
     dtype: str | None = None
     batch: int = 256
+    executor: Executor | None = None
 
     def to_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "executor"}
         d["controllers"] = {n: gains_to_dict(c) for n, c in self.controllers.items()}
         d["distribution"] = self.distribution.to_dict()
         d["out"] = str(self.out)
@@ -463,17 +471,48 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
             f"{out} holds a crude Monte-Carlo study (run.json), whose results.parquet a "
             "rare-event run would replace; give another --out folder."
         )
-    out.mkdir(parents=True, exist_ok=True)
-    summary: dict = {"estimator": c.estimator, "controllers": {}}
+    with (c.executor or LocalExecutor()).session() as session:  # before anything is written
+        out.mkdir(parents=True, exist_ok=True)
+        summary = _estimate(c, session, echo)
     tables = []
+    for name, est in summary.pop("estimates").items():
+        batch = cases_from_variates(c.distribution, to_unit(est.z))
+        cols = {"controller": np.array([name] * est.n_final, dtype=object)}
+        cols.update({kk: np.asarray(v, dtype=np.float64) for kk, v in batch.inputs.items()})
+        cols["failure_margin"] = est.margin
+        cols["log_weight"] = est.log_weight
+        tables.append(pa.table(cols))
+    atomic_write_table(pa.concat_tables(tables), out / "results.parquet")
+    meta = run_metadata(c.to_dict())
+    meta["rare_event"] = summary
+    atomic_write_text(json.dumps(meta, indent=2, default=_json) + "\n", out / "rare_event.json")
+    write_rare_report(out)
+    return summary
+
+
+def _normal_margin(problem: MarginProblem, z) -> np.ndarray:
+    """Failure margins of standard-normal points z (n, D) (a task of `run_rare_event`)."""
+    return problem.margin(to_unit(z))
+
+
+def _estimate(c: RareEventConfig, session, echo) -> dict:
+    """Every controller's estimate with ``session``'s batches (`run_rare_event`); the summary,
+    with the `Estimate` objects under "estimates"."""
+    summary: dict = {"estimator": c.estimator, "controllers": {}, "estimates": {}}
+    if session.record["kind"] != "local":
+        summary["executor"] = session.record
     for k, (name, controller) in enumerate(c.controllers.items()):
         t0 = time.perf_counter()
         problem = _problem(c, controller)
         rng = np.random.default_rng([c.seed, k])
         dim = problem.dimension
 
-        def g(z, problem=problem):
-            return problem.margin(to_unit(z))
+        margin = functools.partial(_normal_margin, problem)
+
+        def g(z, margin=margin):
+            # each batch of c.batch samples one task of the session (so the estimators get
+            # batch=None): the batches of a one-process run, computed side by side
+            return map_batches(session, margin, z, c.batch)
 
         adapt = adapted_variates(c.distribution)
         mean = None
@@ -483,7 +522,7 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
             design = {"iterations": history}
         before = problem.simulations + problem.gradient_simulations
         if c.estimator == "crude":
-            est = crude(g, dim, c.n_cases, rng, batch=c.batch)
+            est = crude(g, dim, c.n_cases, rng, batch=None)
         elif c.estimator == "ce-mixture":
             est = cross_entropy_mixture(
                 g,
@@ -497,7 +536,7 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
                 max_selected=c.max_selected,
                 components=c.components,
                 alpha=c.alpha,
-                batch=c.batch,
+                batch=None,
             )
             names = problem.names
             for stage in est.stages:
@@ -510,12 +549,12 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
                 rng,
                 p0=c.p0,
                 max_levels=c.max_stages,
-                batch=c.batch,
+                batch=None,
                 echo=echo,
             )
         elif c.estimator == "is":
             est = importance_sampling(
-                g, np.zeros(dim) if mean is None else mean, c.n_cases, rng, batch=c.batch
+                g, np.zeros(dim) if mean is None else mean, c.n_cases, rng, batch=None
             )
         else:
             est = cross_entropy(
@@ -528,7 +567,7 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
                 max_stages=c.max_stages,
                 mean=mean,
                 adapt_scale=c.adapt_scale,
-                batch=c.batch,
+                batch=None,
                 adapt=adapt,
             )
         entry = est.to_dict()
@@ -544,17 +583,7 @@ def run_rare_event(config: RareEventConfig, echo=print) -> dict:
                 f"[{lo:.3e}, {hi:.3e}]), {entry['total_simulations']} simulations "
                 f"({entry['seconds']:.1f} s)"
             )
-        batch = cases_from_variates(c.distribution, to_unit(est.z))
-        cols = {"controller": np.array([name] * est.n_final, dtype=object)}
-        cols.update({kk: np.asarray(v, dtype=np.float64) for kk, v in batch.inputs.items()})
-        cols["failure_margin"] = est.margin
-        cols["log_weight"] = est.log_weight
-        tables.append(pa.table(cols))
-    atomic_write_table(pa.concat_tables(tables), out / "results.parquet")
-    meta = run_metadata(c.to_dict())
-    meta["rare_event"] = summary
-    atomic_write_text(json.dumps(meta, indent=2, default=_json) + "\n", out / "rare_event.json")
-    write_rare_report(out)
+        summary["estimates"][name] = est
     return summary
 
 

@@ -9,7 +9,10 @@
   `optax.zero_nans`.
 - ``cmaes``: `cmaes.CMA` (the ``cmaes`` package), the whole population evaluated in ONE
   `afbl_jax.simulate_batch` call (controllers batched over candidates x cases); the current
-  gains are the best candidate seen so far.
+  gains are the best candidate seen so far. With a `DaskExecutor` (``Tuner(executor=...)``)
+  the population is split into consecutive groups of candidates, one task each on the
+  cluster's workers (as many groups as task slots; a group boundary never splits an ensemble
+  group of cases), the same numbers as the one call.
 
 Every method stops after ``steps`` iterations (generations for CMA-ES) or before an iteration
 that would end past ``time_budget`` seconds (estimated from the last iteration). The clock
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import math
 import pickle
@@ -37,6 +41,8 @@ import numpy as np
 import optax
 
 from ...model import AbstractController
+from ..executors import Executor, LocalExecutor
+from ..montecarlo import GROUP_SIZE
 from ._cases import DEFAULT_THRUST_TO_WEIGHT
 from ._objective import (
     GainSpace,
@@ -205,10 +211,17 @@ def _unflat(x, names) -> dict:
 
 class Tuner:
     """Holds the jitted objective, gradient and step functions for one `TuneConfig` (build
-    once, reuse: no retracing across iterations or across `run` calls)."""
+    once, reuse: no retracing across iterations or across `run` calls). ``executor``: where
+    CMA-ES populations are evaluated during `run` (None: this process; a `DaskExecutor`:
+    groups of candidates as tasks of a Dask cluster)."""
 
-    def __init__(self, config: TuneConfig, cases=None, distribution=None):
+    def __init__(
+        self, config: TuneConfig, cases=None, distribution=None, executor: Executor | None = None
+    ):
         self.config = config
+        self.executor = executor
+        self.executor_record: dict | None = None  # the last run's Dask cluster (None: local)
+        self._session = None
         self.space = config.space()
         self.cases = (
             cases
@@ -236,11 +249,15 @@ class Tuner:
         return _value_and_grad(self.config.objective_key(), z, self.cases, self.reference)
 
     def population_losses(self, zs: np.ndarray) -> np.ndarray:
-        """Objective of each row of ``zs`` (P, 12), all candidates in one batched call."""
-        return np.asarray(
-            _population(self.config.objective_key(), jnp.asarray(zs), self.cases, self.reference),
-            dtype=float,
+        """Objective of each row of ``zs`` (P, 12), all candidates in one batched call (during
+        `run` with a Dask executor: groups of candidates, one task each)."""
+        fn = functools.partial(
+            population_losses, self.config.objective_key(), self.cases, self.reference
         )
+        if self._session is None or self._session.record["kind"] == "local":
+            return fn(zs)
+        parts = population_groups(len(zs), self.cases.n_cases, self._session.slots())
+        return np.concatenate(self._session.map(fn, [zs[a:b] for a, b in parts]))
 
     # -- state ---------------------------------------------------------------------------
     def init(self):
@@ -327,7 +344,18 @@ class Tuner:
         after ``stop_after`` iterations, for tests of resuming). Checkpoints go to ``out`` every
         ``checkpoint_every`` iterations; ``resume`` continues from ``out``'s checkpoint (same
         config required) with the same result as an uninterrupted run. History row 0 is the
-        starting point (the paper's gains), row i the gains after iteration i."""
+        starting point (the paper's gains), row i the gains after iteration i. The executor's
+        session (a Dask client) is open during the run."""
+        executor = self.executor if self.config.method == "cmaes" else None
+        with (executor or LocalExecutor()).session() as session:
+            self._session = session
+            self.executor_record = None if session.record["kind"] == "local" else session.record
+            try:
+                return self._run(out, resume, progress, stop_after, log)
+            finally:
+                self._session = None
+
+    def _run(self, out, resume, progress, stop_after, log) -> TuneResult:
         cfg = self.config
         compile_s = self.warmup() if cfg.steps > 0 else 0.0
         z, state = self.init()
@@ -446,6 +474,26 @@ def lbfgs_value_grad(state):
     return optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad")
 
 
+def population_losses(config: TuneConfig, cases, ref, zs) -> np.ndarray:
+    """Objective of each candidate row of ``zs`` (P, 12) on ``cases`` with the normalising
+    ``ref`` (``config``: a `TuneConfig.objective_key`): one batched call (a task of a
+    cluster)."""
+    return np.asarray(_population(config, jnp.asarray(zs), cases, ref), dtype=float)
+
+
+def population_groups(p: int, n_cases: int, slots: int) -> list[tuple[int, int]]:
+    """Consecutive groups [a, b) of ``p`` candidates, at most ``slots`` of them, as even as
+    possible, each boundary at a multiple of GROUP_SIZE / gcd(n_cases, GROUP_SIZE) candidates:
+    the batched call lays the candidates' ``n_cases`` cases out one after the other in
+    ensemble groups of GROUP_SIZE, so every group of cases then lies inside one candidate
+    group and the groups' numbers are those of the whole population's call."""
+    step = GROUP_SIZE // math.gcd(int(n_cases), GROUP_SIZE)
+    units = -(-int(p) // step)
+    k = max(1, min(int(slots), units))
+    bounds = [min(p, step * (units * i // k)) for i in range(k + 1)]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
 @eqx.filter_jit
 def _population(config: TuneConfig, zs, cases, ref):
     """Objective of each candidate row of ``zs`` (P, 12): one simulate_batch call over
@@ -461,10 +509,15 @@ def _population(config: TuneConfig, zs, cases, ref):
 
 
 def tune(
-    config: TuneConfig, out: str | Path | None = None, resume: bool = False, progress: bool = True
+    config: TuneConfig,
+    out: str | Path | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    executor: Executor | None = None,
 ) -> TuneResult:
-    """Tune the gains of ``config.controller`` (see `Tuner.run`)."""
-    return Tuner(config).run(out, resume=resume, progress=progress)
+    """Tune the gains of ``config.controller`` (see `Tuner.run`; ``executor``: where CMA-ES
+    populations are evaluated)."""
+    return Tuner(config, executor=executor).run(out, resume=resume, progress=progress)
 
 
 def save_checkpoint(out, config: TuneConfig, step: int, z, state, history) -> None:

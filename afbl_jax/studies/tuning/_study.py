@@ -17,6 +17,7 @@ import numpy as np
 from ...io import gains_to_dict, run_metadata, save_gains
 from ...model import AbstractController, make_controller
 from ...sim import STATUS_NAMES
+from ..executors import Executor
 from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
@@ -199,18 +200,21 @@ def run_tuning(
     progress: bool = True,
     log=print,
     distribution=None,
+    executor: Executor | None = None,
 ) -> TuningReport:
-    """Tune, then evaluate paper vs tuned gains and write every output file to ``out``."""
+    """Tune, then evaluate paper vs tuned gains and write every output file to ``out``.
+    ``executor``: where CMA-ES populations are evaluated (`Tuner`; None: this process)."""
     out = Path(out)
     if resume and not (out / CHECKPOINT_STATE).exists():
         raise ValueError(f"no checkpoint in {out} ({CHECKPOINT_STATE} missing).")
-    out.mkdir(parents=True, exist_ok=True)
     heldout_seed = config.seed + 1 if heldout_seed is None else int(heldout_seed)
     if heldout_seed == config.seed and config.objective.objective == "robust":
         raise ValueError("the held-out seed must differ from the training seed.")
     n_heldout = HELDOUT_CASES if heldout_cases is None else int(heldout_cases)
-    tuner = Tuner(config, distribution=distribution)
+    tuner = Tuner(config, distribution=distribution, executor=executor)
+    # a Dask scheduler that does not answer raises here, before anything is written
     result = tuner.run(out, resume=resume, progress=progress, log=log)
+    out.mkdir(parents=True, exist_ok=True)
     paper, tuned = make_controller(config.controller), result.controller
     save_gains(tuned, out / "gains.json")
     write_history_csv(result.history, out / "history.csv")
@@ -243,6 +247,8 @@ def run_tuning(
             "resume": resume,
         }
     )
+    if tuner.executor_record is not None:
+        meta["executor"] = tuner.executor_record
     doc = {
         "paper_gains": gains_to_dict(paper),
         "tuned_gains": gains_to_dict(tuned),
