@@ -146,7 +146,7 @@ def measure_dask_scaling(
             "command": f"python studies/dask_scaling.py --cases {n_cases} --workers {workers} "
             f"--rounds {rounds}",
             "git_revision": git_revision(),
-            "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "machine": {
                 "cpu": _cpu_model(),
                 "cores": os.cpu_count(),
@@ -205,7 +205,7 @@ def render_dask_scaling(doc: dict) -> str:
     )
     lines = [
         f"Measured with `{p['command']}` at git revision `{p['git_revision'][:12]}` on "
-        f"{p['date_utc'][:10]} ({p['machine']['cpu']}, {p['machine']['cores']} cores; 1-minute "
+        f"{p['date'][:10]} ({p['machine']['cpu']}, {p['machine']['cores']} cores; 1-minute "
         f"load average {lo:.2f}-{hi:.2f} during the runs; {busy}): {doc['what']}.",
         "",
         "| round | mode | run time [s] | simulations / s | tasks | task window [s] | "
