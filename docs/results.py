@@ -103,6 +103,8 @@ def record(
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     load_start = load_average()
     with tempfile.TemporaryDirectory(prefix="afbl-record-") as work:
+        # the repository's studies/ (distribution files, scripts) at the same relative path
+        (Path(work) / "studies").symlink_to(ROOT / "studies")
         t0 = time.perf_counter()
         proc = subprocess.Popen(command, cwd=work, stdout=subprocess.PIPE, text=True)
         lines = []
@@ -313,7 +315,43 @@ def render_unmodeled(doc: dict) -> str:
     return _fence(text[start.start() : None if end < 0 else end]) + "\n\n" + provenance_line(doc)
 
 
+def render_montecarlo_summary(doc: dict) -> str:
+    """The summary tables `afbl montecarlo` prints, from the summary.json it wrote (Markdown)."""
+    from afbl_jax.studies.montecarlo import summary_tables
+
+    parts = []
+    for title, header, rows in summary_tables(_files(doc, "summary.json")):
+        parts += [f"**{title}**", "", _table(header, rows, "l" + "r" * (len(header) - 1)), ""]
+    return "\n".join(parts) + "\n" + provenance_line(doc)
+
+
+def render_rare_event(doc: dict) -> str:
+    """P(failure) of each controller from the rare_event.json `afbl montecarlo --estimator`
+    wrote."""
+    d = _files(doc, "rare_event.json")["rare_event"]
+    rows = [
+        [
+            f"`{name}`",
+            f"{e['probability']:.2e}",
+            f"[{e['ci95'][0]:.2e}, {e['ci95'][1]:.2e}]",
+            f"{e['cv']:.2f}",
+            str(e["total_simulations"]),
+            f"{e['seconds']:.0f}",
+        ]
+        for name, e in d["controllers"].items()
+    ]
+    head = ["controller", "P(failure)", "95 % interval", "cv", "simulations", "time [s]"]
+    return (
+        f"Estimator: {d['estimator']}.\n\n"
+        + _table(head, rows, "lrrrrr")
+        + "\n\n"
+        + provenance_line(doc)
+    )
+
+
 RENDERERS: dict[str, Callable[[dict], str]] = {
+    "montecarlo-summary": render_montecarlo_summary,
+    "rare-event": render_rare_event,
     "reproduce-table": render_reproduce,
     "reproduce-comparison": render_reproduce_comparison,
     "bench-glance": render_bench_glance,

@@ -11,6 +11,7 @@ from ._distribution import load_distribution as load_distribution
 from ._report import format_summary as format_summary
 from ._report import rare_sections as rare_sections
 from ._report import summarize as summarize
+from ._report import summary_tables as summary_tables
 from ._report import write_report as write_report
 from ._runner import ACCELERATOR_CHUNK_SIZE as ACCELERATOR_CHUNK_SIZE
 from ._runner import BATCH_SETTINGS as BATCH_SETTINGS
