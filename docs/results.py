@@ -325,6 +325,19 @@ def render_montecarlo_summary(doc: dict) -> str:
     return "\n".join(parts) + "\n" + provenance_line(doc)
 
 
+def render_montecarlo_glance(doc: dict) -> str:
+    """The flight-envelope, failure and paired-win tables of a recorded `afbl montecarlo`
+    run (the README's short form of `render_montecarlo_summary`)."""
+    from afbl_jax.studies.montecarlo import summary_tables
+
+    keep = ("flight envelope", "failures of flyable cases", "paired win rate")
+    parts = []
+    for title, header, rows in summary_tables(_files(doc, "summary.json")):
+        if title.startswith(keep):
+            parts += [f"**{title}**", "", _table(header, rows, "l" + "r" * (len(header) - 1)), ""]
+    return "\n".join(parts) + "\n" + provenance_line(doc)
+
+
 def render_rare_event(doc: dict) -> str:
     """P(failure) of each controller from the rare_event.json `afbl montecarlo --estimator`
     wrote."""
@@ -351,6 +364,7 @@ def render_rare_event(doc: dict) -> str:
 
 RENDERERS: dict[str, Callable[[dict], str]] = {
     "montecarlo-summary": render_montecarlo_summary,
+    "montecarlo-glance": render_montecarlo_glance,
     "rare-event": render_rare_event,
     "reproduce-table": render_reproduce,
     "reproduce-comparison": render_reproduce_comparison,

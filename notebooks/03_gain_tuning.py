@@ -66,8 +66,9 @@ DOCS = Path(T.__file__).resolve().parents[3] / "docs"  # the repository's docs/
 # ## 1. Cases and the objective
 #
 # The default tuning distribution is the Monte-Carlo default (payload, model errors, pulses,
-# gusts, mean wind, Dryden turbulence, rotor drag) plus `T.TUNING_UNMODELED`. To keep this
-# notebook short, the runs here are 1.5 s long with light turbulence and 200–250 Hz control.
+# gusts, mean wind, Dryden turbulence, rotor drag; position hold from a trimmed start) plus
+# `T.TUNING_UNMODELED`. To keep this notebook short, the runs here are 1.5 s long with
+# 200–250 Hz control.
 
 # %%
 print(T.TUNING_UNMODELED)
@@ -76,7 +77,6 @@ short = MC.Distribution.from_dict(
         "unmodeled": {**T.TUNING_UNMODELED, "control_rate": [200.0, 250.0]},
         "pulses": {"start": [0.3, 1.2], "duration": [0.1, 0.4]},
         "gust": {"start": [0.3, 1.2], "buildup_time": [0.2, 0.5]},
-        "turbulence": {"intensity_probabilities": {"light": 1.0, "moderate": 0.0, "severe": 0.0}},
         "time": {"t1": 1.5},
     },
     "notebook",

@@ -39,12 +39,14 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._typing import Array, Float, PlantState, Scalar
 from .._validation import as_float, check_positive, concrete
 from ._params import QuadrotorParams
+from ._rotations import cos_sin
 
 POSITION_LOOP_LAYOUT: tuple[str, ...] = (
     "integral_x",
@@ -87,17 +89,11 @@ def _as_pair(x) -> Array:
     return jnp.broadcast_to(x, (2,)) if x.ndim == 0 else x
 
 
-def _safe_norm(a) -> Array:
-    n2 = jnp.sum(a**2, axis=-1)
-    positive = n2 > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, n2, 1.0)), 0.0)
-
-
 def attitude_for_acceleration(acceleration, psi, g) -> Array:
     """(phi, theta) [rad] whose thrust direction gives the horizontal acceleration
     ``acceleration`` (x, y) [m/s^2] against gravity ``g`` [m/s^2] at yaw ``psi`` [rad]
     (module docstring)."""
-    c, s = jnp.cos(psi), jnp.sin(psi)
+    c, s = cos_sin(psi)
     bx = c * acceleration[..., 0] + s * acceleration[..., 1]
     by = -s * acceleration[..., 0] + c * acceleration[..., 1]
     theta = jnp.arctan2(bx, g)
@@ -179,8 +175,9 @@ class PositionHold(eqx.Module):
         g = model.g
         a_cmd = self.acceleration_command(state, measured, position)
         a_max = self.acceleration_limit(g)
-        norm = _safe_norm(a_cmd)
-        scale = jnp.where(norm > a_max, a_max / jnp.where(norm > a_max, norm, 1.0), 1.0)
+        n2 = jnp.sum(a_cmd**2, axis=-1)
+        over = n2 > a_max**2  # scaled onto the limit: a_max / |a_cmd| (one rsqrt)
+        scale = jnp.where(over, a_max * jax.lax.rsqrt(jnp.where(over, n2, 1.0)), 1.0)
         a_sat = a_cmd * scale
         cmd = attitude_for_acceleration(a_sat, measured[5], g)
         wf = self.filter_frequency

@@ -40,8 +40,9 @@ Strategies (rows of bench.json):
 - ``montecarlo_cases``: the Monte-Carlo default distribution's own cases (wind, turbulence,
   gusts, rotor drag, payload, model errors, position hold, trimmed start), solved exactly as
   ``afbl montecarlo`` solves a chunk (`afbl_jax.studies.montecarlo.run_chunk`, default
-  strategy); ``montecarlo_cases_no_position_loop``: the same cases flown without the position
-  loop and from rest (the cost of the position loop and the trimmed start, in the same run).
+  strategy); ``montecarlo_cases_no_position_loop``: the same cases, the same wind, flown
+  without the position loop from rest, level (`without_position_loop`): what the position loop
+  and the trimmed start cost per case, in the same run.
   Their accuracy is measured on the first cases against an x64 Dopri8 solve (rtol 1e-10) of
   the same closed loop.
 
@@ -129,14 +130,11 @@ BATCH_STRATEGIES = {
         False, unmodeled=True, integrator="diffeqsolve"
     ),
 }
-MONTECARLO_CASE_ROWS = {
-    # name: overrides of the Monte-Carlo default distribution the cases are drawn from
-    "montecarlo_cases": {},
-    "montecarlo_cases_no_position_loop": {"flight": {"position_hold": False, "start": "rest"}},
-}
+MONTECARLO_CASE_ROWS = ("montecarlo_cases", "montecarlo_cases_no_position_loop")
 """Rows on the Monte-Carlo default distribution's own cases (AFBL, ``afbl montecarlo``'s default
-strategy): the default (position hold, trimmed start) and the same cases flown without the
-position loop from rest (attitude steps and sines, drifting with the air)."""
+strategy): the default (position hold, trimmed start) and the same cases (the same wind,
+turbulence realisation included) flown without the position loop from rest
+(`without_position_loop`)."""
 LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
 ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES, *MONTECARLO_CASE_ROWS)
 REFERENCE = {"solver": "dopri8", "rtol": 1e-10, "atol": 1e-12, "dtype": "float64"}
@@ -422,11 +420,34 @@ def measure_batch(name: str, scenarios: Scenario, ref: np.ndarray) -> dict:
     }
 
 
-def montecarlo_case_batch(name: str, n: int, seed: int):
-    """The first ``n`` cases of the row's Monte-Carlo distribution (`MONTECARLO_CASE_ROWS`)."""
-    from .montecarlo import Distribution, sample_cases
+def without_position_loop(batch):
+    """A Monte-Carlo case batch flown without its position loop, from rest: level, zero
+    velocity and controller states, the attitude references of its missions (level flight;
+    altitude and yaw steps as they are), the same vehicles and wind."""
+    import equinox as eqx
+    import jax.numpy as jnp
 
-    return sample_cases(Distribution.from_dict(MONTECARLO_CASE_ROWS[name]), n, seed)
+    scenario = eqx.tree_at(
+        lambda s: (s.trim, s.position, s.initial_state),
+        batch.scenario,
+        (None, None, jnp.zeros_like(batch.scenario.initial_state)),
+        is_leaf=lambda x: x is None,
+    )
+    return eqx.tree_at(
+        lambda b: (b.scenario, b.position_loop),
+        batch,
+        (scenario, None),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def montecarlo_case_batch(name: str, n: int, seed: int):
+    """The first ``n`` cases of the Monte-Carlo default distribution for the row ``name``
+    (`MONTECARLO_CASE_ROWS`)."""
+    from .montecarlo import default_distribution, sample_cases
+
+    batch = sample_cases(default_distribution(), n, seed)
+    return batch if name == "montecarlo_cases" else without_position_loop(batch)
 
 
 def montecarlo_reference(batch) -> np.ndarray:
@@ -476,7 +497,7 @@ def measure_montecarlo_cases(name: str, batch, ref: np.ndarray) -> dict:
         "rtol": rtol,
         "atol": atol,
         "devices": len(jax.local_devices()) if shard else 1,
-        "distribution": MONTECARLO_CASE_ROWS[name],
+        "position_loop": batch.position_loop is not None,
         "sims_per_s": n / run,
         "seconds": run,
         "compile_s": max(first - run, 0.0),

@@ -37,7 +37,6 @@ SHORT = Distribution.from_dict(
         "unmodeled": {**TUNING_UNMODELED, "control_rate": [200.0, 250.0]},
         "pulses": {"start": [0.3, 1.2], "duration": [0.1, 0.4]},
         "gust": {"start": [0.3, 1.2], "buildup_time": [0.2, 0.5]},
-        "turbulence": {"intensity_probabilities": {"light": 1.0, "moderate": 0.0, "severe": 0.0}},
         "time": {"t1": 1.5},
     },
     "short test distribution",

@@ -260,6 +260,10 @@ def test_sampler_table_levels_and_drifting_vehicle():
         ({"mean_wind": {"source": "w20", "speed": [-1.0, 2.0]}}, "mean_wind.speed"),
         ({"mean_wind": {"source": "w20"}}, 'needs turbulence.intensity = "table"'),
         ({"mean_wind": {"enabled": False}}, "switches off"),
+        (
+            {"turbulence": {"intensity_probabilities": {"none": 0.0, "light": 1.0}}},
+            "draws a level per case, which needs",
+        ),
         ({"turbulence": {"min_airspeed": 0.0}}, "min_airspeed must be > 0"),
         ({"turbulence": {"airspeed": -1.0}}, "turbulence.airspeed must be a finite number >= 0"),
         ({"flight": {"position_hold": False, "start": "level"}}, "flight.start must be one of"),

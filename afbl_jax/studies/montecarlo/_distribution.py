@@ -408,6 +408,13 @@ class Distribution:
         spec = copy.deepcopy(DEFAULT_DISTRIBUTION)
         for section, body in overrides.items():
             spec[section].update(copy.deepcopy(body))
+        turb = overrides.get("turbulence", {})
+        if "intensity_probabilities" in turb and spec["turbulence"]["intensity"] != "table":
+            raise ValueError(
+                f"{source}: turbulence.intensity_probabilities draws a level per case, which "
+                'needs turbulence.intensity = "table" (the default, "mean_wind", takes the '
+                "intensities from each case's mean wind)."
+            )
         given = overrides.get("reference", {}).get("profile_probabilities")
         if given is None and not spec["flight"]["position_hold"]:
             spec["reference"]["profile_probabilities"] = {"step": 0.5, "sine": 0.5}
