@@ -53,17 +53,20 @@ BLOCK = re.compile(
 
 
 def git_revision() -> str:
-    """HEAD of this repository, with ``-dirty`` when tracked files are modified."""
+    """HEAD of this repository, with ``-dirty`` when tracked files other than the recorded
+    results (docs/results/, docs/figures/: what recording writes) are modified."""
     sha = subprocess.run(
         ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
     ).stdout.strip()
-    dirty = subprocess.run(
+    status = subprocess.run(
         ["git", "status", "--porcelain", "--untracked-files=no"],
         cwd=ROOT,
         capture_output=True,
         text=True,
         check=True,
-    ).stdout.strip()
+    ).stdout.splitlines()
+    outputs = ("docs/results/", "docs/figures/")
+    dirty = [line for line in status if not line[3:].startswith(outputs)]
     return sha + ("-dirty" if dirty else "")
 
 

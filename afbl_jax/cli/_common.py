@@ -161,7 +161,7 @@ def add_cluster(p: argparse.ArgumentParser, what: str) -> None:
         default=None,
         metavar="ADDRESS",
         help="address of a running Dask scheduler (e.g. tcp://host:8786; from `dask scheduler` "
-        "or dask-jobqueue's SLURMCluster/PBSCluster)",
+        "or dask-jobqueue's SLURMCluster/PBSCluster) (default: none, this process computes)",
     )
     g.add_argument(
         "--workers",
@@ -169,7 +169,7 @@ def add_cluster(p: argparse.ArgumentParser, what: str) -> None:
         default=None,
         metavar="N",
         help="start a Dask LocalCluster of N worker processes on this machine (one thread and "
-        "cores / N CPU devices each) for this command",
+        "cores / N CPU devices each) for this command (default: none, this process computes)",
     )
 
 

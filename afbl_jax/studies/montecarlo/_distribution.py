@@ -409,7 +409,13 @@ class Distribution:
         for section, body in overrides.items():
             spec[section].update(copy.deepcopy(body))
         turb = overrides.get("turbulence", {})
-        if "intensity_probabilities" in turb and spec["turbulence"]["intensity"] != "table":
+        table = turb.get("intensity_probabilities")
+        default_table = DEFAULT_DISTRIBUTION["turbulence"]["intensity_probabilities"]
+        if (
+            table is not None
+            and table != default_table
+            and spec["turbulence"]["intensity"] != "table"
+        ):
             raise ValueError(
                 f"{source}: turbulence.intensity_probabilities draws a level per case, which "
                 'needs turbulence.intensity = "table" (the default, "mean_wind", takes the '
