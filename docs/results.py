@@ -173,7 +173,8 @@ def _fence(text: str) -> str:
 def _table(head: list[str], rows: list[list[str]], align: str | None = None) -> str:
     align = align or "l" + "r" * (len(head) - 1)
     rule = ["---:" if a == "r" else "---" for a in align]
-    lines = ["| " + " | ".join(head) + " |", "| " + " | ".join(rule) + " |"]
+    lines = ["| " + " | ".join(c.replace("|", "\\|") for c in head) + " |"]
+    lines.append("| " + " | ".join(rule) + " |")
     lines += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in rows]
     return "\n".join(lines)
 
