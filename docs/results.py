@@ -55,6 +55,10 @@ BLOCK = re.compile(
 def git_revision() -> str:
     """HEAD of this repository, with ``-dirty`` when tracked files other than the recorded
     results (docs/results/, docs/figures/: what recording writes) are modified."""
+    if not (ROOT / ".git").exists():
+        # a copy of the working tree without its history (a remote machine): the revision it
+        # was copied from, as the caller states it
+        return os.environ.get("AFBL_GIT_REVISION", "unknown")
     sha = subprocess.run(
         ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
     ).stdout.strip()
@@ -70,8 +74,23 @@ def git_revision() -> str:
     return sha + ("-dirty" if dirty else "")
 
 
+def gpus() -> str:
+    """The NVIDIA GPUs of this machine as ``nvidia-smi`` names them ("" when there is none)."""
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    names = [line.strip() for line in out.splitlines() if line.strip()]
+    return "; ".join(names)
+
+
 def machine() -> str:
-    """CPU model, core count, memory and operating system of this machine."""
+    """GPUs (if any), CPU model, core count, memory and operating system of this machine."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -86,7 +105,9 @@ def machine() -> str:
         memory = f", {kb / 2**20:.0f} GiB memory"
     except (OSError, ValueError, IndexError):
         pass
-    return f"{cpu}, {os.cpu_count()} cores{memory}, {platform.platform()}"
+    host = f"{cpu}, {os.cpu_count()} cores{memory}, {platform.platform()}"
+    gpu = gpus()
+    return f"GPU {gpu}; host {host}" if gpu else host
 
 
 def load_average() -> str:

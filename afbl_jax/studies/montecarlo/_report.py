@@ -346,7 +346,11 @@ def replay_worst(
 
     ``chunk_size``: the run's chunk size; the cases are drawn in a batch of that size
     (`sample_cases_at`), with the sampler the run compiled and bitwise the inputs the run
-    simulated."""
+    simulated. The replays run on the CPU whatever the default device (a handful of
+    sequential float64 solves, each a chain of small steps, run faster there than on an
+    accelerator); the cases are drawn on the default device, as the run drew them."""
+    import jax
+
     from ...sim import simulate
     from ._runner import SolverSettings
     from ._sampler import sample_cases_at
@@ -357,27 +361,38 @@ def replay_worst(
         return {}
     size = chunk_size if chunk_size is not None and chunk_size >= len(cases) else None
     batch = sample_cases_at(distribution, cases, seed, size=size)
+    cpu = jax.devices("cpu")[0]
     out = {}
     for i, case in enumerate(cases):
-        scenario, vehicle, model = batch.case(i)
-        out[case] = {
-            name: simulate(
-                ctrl,
-                scenario,
-                vehicle,
-                model,
-                solver=settings.solver,
-                rtol=settings.rtol,
-                atol=settings.atol,
-                n_save=801,
-                max_steps=settings.max_steps,
-                unmodeled=batch.unmodeled_case(i),
-                aerodynamics=batch.aerodynamics,
-                position_loop=batch.position_loop,
-                saving="dense",  # no host callback: the compiled replay is cached
-            )
-            for name, ctrl in controllers.items()
-        }
+        scenario, vehicle, model, unmodeled, aerodynamics, position_loop, ctrls = jax.tree.map(
+            lambda x: jax.device_put(x, cpu) if isinstance(x, jax.Array) else x,
+            (
+                *batch.case(i),
+                batch.unmodeled_case(i),
+                batch.aerodynamics,
+                batch.position_loop,
+                controllers,
+            ),
+        )
+        with jax.default_device(cpu):
+            out[case] = {
+                name: simulate(
+                    ctrl,
+                    scenario,
+                    vehicle,
+                    model,
+                    solver=settings.solver,
+                    rtol=settings.rtol,
+                    atol=settings.atol,
+                    n_save=801,
+                    max_steps=settings.max_steps,
+                    unmodeled=unmodeled,
+                    aerodynamics=aerodynamics,
+                    position_loop=position_loop,
+                    saving="dense",  # no host callback: the compiled replay is cached
+                )
+                for name, ctrl in ctrls.items()
+            }
     return out
 
 
