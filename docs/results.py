@@ -387,6 +387,30 @@ def render_rare_event(doc: dict) -> str:
     )
 
 
+def render_test_times(doc: dict) -> str:
+    """Seconds per test file of the default test run (`studies/test_times.py`)."""
+    t = _files(doc, "test_times.json")
+    rows = [[f"`{r['file']}`", str(r["tests"]), f"{r['seconds']:.0f}"] for r in t["files"]]
+    rows.append(
+        [
+            "all files (worker time)",
+            str(sum(r["tests"] for r in t["files"])),
+            f"{sum(r['seconds'] for r in t['files']):.0f}",
+        ]
+    )
+    summary = (
+        f"Wall time {t['wall_s']:.0f} s ({t['wall_s'] / 60:.1f} min): {t['passed']} passed, "
+        f"{t['failed']} failed, {t['skipped']} skipped."
+    )
+    return (
+        _table(["test file", "tests", "seconds"], rows)
+        + "\n\n"
+        + summary
+        + "\n\n"
+        + provenance_line(doc, load=True)
+    )
+
+
 RENDERERS: dict[str, Callable[[dict], str]] = {
     "montecarlo-summary": render_montecarlo_summary,
     "montecarlo-glance": render_montecarlo_glance,
@@ -399,6 +423,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "tuning-optimizers": render_tuning_optimizers,
     "tuning-controllers": render_tuning_controllers,
     "unmodeled-grid": render_unmodeled,
+    "test-times": render_test_times,
 }
 """Kind -> function of a result file's document (with its provenance) to Markdown."""
 

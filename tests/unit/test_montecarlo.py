@@ -33,6 +33,7 @@ from afbl_jax.scenario import (
 from afbl_jax.studies import montecarlo as mc
 
 from ..helpers import count_compiles
+from ..xla_flags import TEST_XLA_FLAGS
 
 CHUNK = 4
 N = 6  # two chunks, the second padded
@@ -567,7 +568,10 @@ SHARD_SCRIPT = textwrap.dedent("""
 
 
 def test_sharded_equals_unsharded():
-    env = {**__import__("os").environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = {
+        **__import__("os").environ,
+        "XLA_FLAGS": f"--xla_force_host_platform_device_count=2 {TEST_XLA_FLAGS}",
+    }
     r = subprocess.run(
         [sys.executable, "-c", SHARD_SCRIPT],
         capture_output=True,
