@@ -6,7 +6,7 @@ from ._common import Formatter, UsageError, add_out, check_out, seed
 
 
 def register(sub) -> None:
-    from ..studies.bench import ALL_STRATEGIES, DEFAULT_SIZES
+    from ..studies.bench_rows import ALL_STRATEGIES, DEFAULT_SIZES
 
     p = sub.add_parser(
         "bench",
@@ -39,7 +39,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..studies.bench import ALL_STRATEGIES, BenchConfig, format_rows, run_benchmark
+    from ..studies.bench_rows import ALL_STRATEGIES
 
     try:
         sizes = tuple(int(s) for s in args.sizes.split(",") if s.strip())
@@ -54,6 +54,8 @@ def run(args) -> int:
     if min(args.scipy_cases, args.loop_cases, args.ref_cases) <= 0:
         raise UsageError("--scipy-cases, --loop-cases, --ref-cases must be > 0.")
     check_out(args.out)
+    from ..studies.bench import BenchConfig, format_rows, run_benchmark
+
     rows = run_benchmark(
         BenchConfig(
             args.out,

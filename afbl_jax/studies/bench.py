@@ -75,8 +75,12 @@ from ..metrics import BatchMetrics
 from ..model import AFBL, UnmodeledDynamics
 from ..scenario import PulseDisturbance, Scenario, paper_scenario
 from ..sim import STATUS_OK, simulate, simulate_batch
+from .bench_rows import (
+    ALL_STRATEGIES,
+    DEFAULT_SIZES,
+    MONTECARLO_CASE_ROWS,
+)
 
-DEFAULT_SIZES = (64, 1024, 4096, 16384)
 CHUNK = 128
 
 
@@ -110,7 +114,8 @@ def _mc_default(
 
 
 BATCH_STRATEGIES = {
-    # name: simulate_batch settings ("always": measure even when chunking changes nothing)
+    # name (`bench_rows.BATCH_ROWS`, same order): simulate_batch settings ("always": measure
+    # even when chunking changes nothing)
     "vmap": {"strategy": "vmap", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
     "ensemble": {"strategy": "ensemble", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
     "ensemble_f32": {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5, "atol": 1e-6},
@@ -130,13 +135,6 @@ BATCH_STRATEGIES = {
         False, unmodeled=True, integrator="diffeqsolve"
     ),
 }
-MONTECARLO_CASE_ROWS = ("montecarlo_cases", "montecarlo_cases_no_position_loop")
-"""Rows on the Monte-Carlo default distribution's own cases (AFBL, ``afbl montecarlo``'s default
-strategy): the default (position hold, trimmed start) and the same cases (the same wind,
-turbulence realisation included) flown without the position loop from rest
-(`without_position_loop`)."""
-LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
-ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES, *MONTECARLO_CASE_ROWS)
 REFERENCE = {"solver": "dopri8", "rtol": 1e-10, "atol": 1e-12, "dtype": "float64"}
 
 
