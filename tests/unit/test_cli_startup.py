@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 import afbl_jax
 from afbl_jax.cli import SUBCOMMANDS
 
@@ -89,3 +91,26 @@ def test_bench_row_names_match_the_benchmark():
 
     assert tuple(bench.BATCH_STRATEGIES) == bench_rows.BATCH_ROWS
     assert bench.ALL_STRATEGIES == bench_rows.ALL_STRATEGIES
+
+
+@pytest.mark.slow
+def test_montecarlo_phases_add_up_to_the_command_wall_time(tmp_path):
+    """``afbl montecarlo`` records its start-up phase (from the process's start) and phases
+    that add up to the command's wall time as a user sees it."""
+    dist = tmp_path / "short.toml"
+    dist.write_text("[time]\nt1 = 2.0\n[pulses]\nstart = [0.5, 1.0]\n[gust]\nstart = [0.5, 1.0]\n")
+    out = tmp_path / "mc"
+    argv = ["montecarlo", "--cases", "8", "--chunk-size", "8", "--controllers", "afbl"]
+    argv += ["--distribution", str(dist), "--no-progress", "--out", str(out)]
+    t0 = time.perf_counter()
+    r = subprocess.run(
+        [sys.executable, "-m", "afbl_jax.cli", *argv], capture_output=True, text=True
+    )
+    wall = time.perf_counter() - t0
+    assert r.returncode == 0, r.stderr[-2000:]
+    phases = json.loads((out / "meta.json").read_text())["phases_seconds"]
+    print(phases, f"wall {wall:.2f} s")
+    assert all(phases[k] > 0 for k in ("startup", "compilation", "report"))
+    assert phases["runs"] >= 0
+    assert phases["total"] == pytest.approx(wall, rel=0.1, abs=1.5)
+    assert "time: start-up and imports" in r.stdout
