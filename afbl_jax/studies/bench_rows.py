@@ -28,5 +28,9 @@ strategy): the default (position hold, trimmed start) and the same cases (the sa
 turbulence realisation included) flown without the position loop from rest
 (`without_position_loop`)."""
 
-ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_ROWS, *MONTECARLO_CASE_ROWS)
+MONTECARLO_SCIPY_ROW = "scipy_rk45_montecarlo_cases"
+"""The scipy baseline on the Monte-Carlo default distribution's own cases (`solve_ivp` with the
+NumPy closed loop of `afbl_jax.studies.numpy_loop`): the ratio of `MONTECARLO_CASE_ROWS`."""
+
+ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_ROWS, MONTECARLO_SCIPY_ROW, *MONTECARLO_CASE_ROWS)
 """Every row, in the order they are measured."""
