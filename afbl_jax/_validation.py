@@ -1,8 +1,8 @@
-"""Construction-time checks that skip traced values (so vmap/jit/grad still work)."""
+"""Construction-time checks that skip traced values (so vmap/jit/grad still work). JAX is imported
+only by the checks that need it, so the CLI's argument parsing (`MAX_SEED`) starts without it."""
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 
 MAX_SEED = 2**63 - 1
@@ -22,6 +22,8 @@ def check_seed(seed, name: str = "seed") -> int:
 
 def concrete(x) -> np.ndarray | None:
     """`x` as a NumPy array, or ``None`` when it is a JAX tracer (inside jit/vmap/grad)."""
+    import jax
+
     if isinstance(x, jax.core.Tracer):
         return None
     try:

@@ -1,9 +1,11 @@
 """The ``afbl`` command: one module per subcommand over the public API.
 
-`main` splits the CPU into one XLA device per core (before JAX starts), keeps XLA's compiled
-programs between runs (`afbl_jax.configure_compilation_cache`; ``AFBL_COMPILATION_CACHE=off``
-for none), switches JAX's 64-bit mode on once (before any gains or distribution file is read,
-so numbers keep full precision), parses the arguments and runs the subcommand. Every user error
+`main` parses the arguments without importing JAX or the studies (``--help`` and argument
+errors answer at once; each subcommand imports what it runs), then splits the CPU into one XLA
+device per core (before JAX starts), keeps XLA's compiled programs between runs
+(`afbl_jax.configure_compilation_cache`; ``AFBL_COMPILATION_CACHE=off`` for none), switches
+JAX's 64-bit mode on once (before any gains or distribution file is read, so numbers keep full
+precision) and runs the subcommand. Every user error
 takes one path: a single line ``afbl <command>: error: <what was wrong and what is allowed>``
 on stderr, exit status 2, no traceback. That includes argparse's own errors (unknown flag, a
 value of the wrong type, a missing --out: the line ends with "(see afbl <command> --help)"
@@ -59,12 +61,6 @@ def _configure_cache() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``afbl`` with ``argv`` (default: the command line); returns the exit status."""
-    _configure_devices()
-    import jax
-
-    _configure_cache()
-
-    jax.config.update("jax_enable_x64", True)
     parser = build_parser()
     try:
         args, extra = parser.parse_known_args(argv)
@@ -76,6 +72,12 @@ def main(argv: list[str] | None = None) -> int:
             f"unrecognized arguments: {' '.join(extra)} (see afbl {args.command} --help)",
         )
         return 2
+    _configure_devices()
+    import jax
+
+    _configure_cache()
+
+    jax.config.update("jax_enable_x64", True)
     try:
         return int(args.func(args) or 0)
     except ValueError as err:  # UsageError, and validation of files and settings in the library

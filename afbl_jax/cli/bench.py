@@ -6,7 +6,7 @@ from ._common import Formatter, UsageError, add_out, check_out, seed
 
 
 def register(sub) -> None:
-    from ..studies.bench import ALL_STRATEGIES, DEFAULT_SIZES
+    from ..studies.bench_rows import ALL_STRATEGIES, DEFAULT_SIZES
 
     p = sub.add_parser(
         "bench",
@@ -15,8 +15,10 @@ def register(sub) -> None:
         description="Simulations per second of the uncertain-step AFBL case for a scipy "
         "solve_ivp loop, a loop of jitted diffrax solves, vmap, the ensemble and float32 "
         "ensemble, the Monte-Carlo default (also on a realistic vehicle: full plant, 30 ms motor "
-        "lag, 250 Hz digital control), with compile time, memory and max relative ISE error vs "
-        "an x64 reference. Writes OUT/bench.json and OUT/bench.png.",
+        "lag, 250 Hz digital control), and of the Monte-Carlo default distribution's own cases "
+        "for afbl montecarlo's solve and a scipy solve_ivp loop of the same closed loop, with "
+        "compile time, memory and max relative ISE error vs an x64 reference. Writes "
+        "OUT/bench.json and OUT/bench.png.",
     )
     add_out(p)
     p.add_argument(
@@ -26,6 +28,12 @@ def register(sub) -> None:
         "--strategies", default=",".join(ALL_STRATEGIES), help="comma-separated rows to measure"
     )
     p.add_argument("--scipy-cases", type=int, default=16, help="cases for the scipy loop")
+    p.add_argument(
+        "--scipy-montecarlo-cases",
+        type=int,
+        default=4,
+        help="cases for the scipy loop on the Monte-Carlo cases (scipy_rk45_montecarlo_cases)",
+    )
     p.add_argument("--loop-cases", type=int, default=64, help="cases for the diffrax loop")
     p.add_argument(
         "--ref-cases",
@@ -39,7 +47,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..studies.bench import ALL_STRATEGIES, BenchConfig, format_rows, run_benchmark
+    from ..studies.bench_rows import ALL_STRATEGIES
 
     try:
         sizes = tuple(int(s) for s in args.sizes.split(",") if s.strip())
@@ -51,9 +59,13 @@ def run(args) -> int:
         raise UsageError(f"unknown strategies {unknown}; allowed: {', '.join(ALL_STRATEGIES)}.")
     if not sizes or min(sizes) <= 0:
         raise UsageError(f"--sizes must be positive integers, got {args.sizes!r}.")
-    if min(args.scipy_cases, args.loop_cases, args.ref_cases) <= 0:
-        raise UsageError("--scipy-cases, --loop-cases, --ref-cases must be > 0.")
+    if min(args.scipy_cases, args.scipy_montecarlo_cases, args.loop_cases, args.ref_cases) <= 0:
+        raise UsageError(
+            "--scipy-cases, --scipy-montecarlo-cases, --loop-cases, --ref-cases must be > 0."
+        )
     check_out(args.out)
+    from ..studies.bench import BenchConfig, format_rows, run_benchmark
+
     rows = run_benchmark(
         BenchConfig(
             args.out,
@@ -63,6 +75,7 @@ def run(args) -> int:
             args.loop_cases,
             args.ref_cases,
             args.seed,
+            scipy_montecarlo_cases=args.scipy_montecarlo_cases,
         ),
         log=lambda s: print(s, flush=True),
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ._clock import since_start
 from ._common import (
     Formatter,
     UsageError,
@@ -234,7 +235,8 @@ def run(args) -> int:
             host_index=host_index,
             host_count=host_count,
             executor=executor,
-        )
+        ),
+        startup_seconds=since_start(),
     )
     return 0
 

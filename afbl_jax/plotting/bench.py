@@ -16,7 +16,12 @@ def plot_benchmark(rows: list[dict], path: Path, batch_rows=()) -> Path:
         if pts:
             dashed = name.startswith("montecarlo_cases")  # the Monte-Carlo distribution's cases
             ax.plot(*zip(*pts, strict=True), "s--" if dashed else "o-", label=name)
-    for name, style in (("scipy_rk45_loop", "k--"), ("diffrax_loop", "k:")):
+    loops = (
+        ("scipy_rk45_loop", "k--"),
+        ("diffrax_loop", "k:"),
+        ("scipy_rk45_montecarlo_cases", "k-."),
+    )
+    for name, style in loops:
         for r in rows:
             if r["strategy"] == name:
                 ax.axhline(r["sims_per_s"], ls=style[1:], color="k", label=f"{name} (per case)")

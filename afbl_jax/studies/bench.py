@@ -45,6 +45,21 @@ Strategies (rows of bench.json):
   and the trimmed start cost per case, in the same run.
   Their accuracy is measured on the first cases against an x64 Dopri8 solve (rtol 1e-10) of
   the same closed loop.
+- ``scipy_rk45_montecarlo_cases``: the baseline on those cases: `scipy.integrate.solve_ivp`
+  (RK45, rtol 1e-6, atol 1e-8, as ``scipy_rk45_loop``) with a NumPy right-hand side of the same
+  closed loop (`afbl_jax.studies.numpy_loop`: plant, mean wind + gusts + sum-of-sinusoids
+  turbulence from each case's `afbl_jax.Wind` arrays, rotor drag, rotor-speed saturation, the
+  position loop, AFBL, the ISE states; from the case's trimmed initial state, piecewise between
+  the case's jump times, stopped at the divergence limits), one case after the other on one
+  core, on the first ``scipy_montecarlo_cases`` cases (sims/s does not depend on N). Its
+  accuracy is measured against the same x64 reference as ``montecarlo_cases``.
+
+Ratios (``ratio_to_scipy``, with the row it is taken against in ``ratio_baseline``): each row's
+sims/s over its own kind of baseline measured in the same run: the canonical rows over
+``scipy_rk45_loop``, the rows on the Monte-Carlo cases over ``scipy_rk45_montecarlo_cases``
+(over ``scipy_rk45_loop`` when that row is not measured; ``montecarlo_cases_no_position_loop``
+flies the same cases without the position loop, so its ratio says what the position loop
+costs besides the speed-up).
 
 Every batched row splits the cases over all local devices (``devices`` in the row) except
 ``montecarlo_default_1dev``; ``afbl bench`` starts with one XLA CPU device per core
@@ -75,8 +90,13 @@ from ..metrics import BatchMetrics
 from ..model import AFBL, UnmodeledDynamics
 from ..scenario import PulseDisturbance, Scenario, paper_scenario
 from ..sim import STATUS_OK, simulate, simulate_batch
+from .bench_rows import (
+    ALL_STRATEGIES,
+    DEFAULT_SIZES,
+    MONTECARLO_CASE_ROWS,
+    MONTECARLO_SCIPY_ROW,
+)
 
-DEFAULT_SIZES = (64, 1024, 4096, 16384)
 CHUNK = 128
 
 
@@ -110,7 +130,8 @@ def _mc_default(
 
 
 BATCH_STRATEGIES = {
-    # name: simulate_batch settings ("always": measure even when chunking changes nothing)
+    # name (`bench_rows.BATCH_ROWS`, same order): simulate_batch settings ("always": measure
+    # even when chunking changes nothing)
     "vmap": {"strategy": "vmap", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
     "ensemble": {"strategy": "ensemble", "dtype": "float64", "rtol": 1e-6, "atol": 1e-8},
     "ensemble_f32": {"strategy": "ensemble", "dtype": "float32", "rtol": 1e-5, "atol": 1e-6},
@@ -130,13 +151,6 @@ BATCH_STRATEGIES = {
         False, unmodeled=True, integrator="diffeqsolve"
     ),
 }
-MONTECARLO_CASE_ROWS = ("montecarlo_cases", "montecarlo_cases_no_position_loop")
-"""Rows on the Monte-Carlo default distribution's own cases (AFBL, ``afbl montecarlo``'s default
-strategy): the default (position hold, trimmed start) and the same cases (the same wind,
-turbulence realisation included) flown without the position loop from rest
-(`without_position_loop`)."""
-LOOP_STRATEGIES = ("scipy_rk45_loop", "diffrax_loop")
-ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_STRATEGIES, *MONTECARLO_CASE_ROWS)
 REFERENCE = {"solver": "dopri8", "rtol": 1e-10, "atol": 1e-12, "dtype": "float64"}
 
 
@@ -510,6 +524,48 @@ def measure_montecarlo_cases(name: str, batch, ref: np.ndarray) -> dict:
     }
 
 
+def measure_scipy_montecarlo_cases(batch, ref: np.ndarray) -> dict:
+    """The ``scipy_rk45_montecarlo_cases`` row: `solve_ivp` (RK45, rtol 1e-6, atol 1e-8) with
+    the NumPy closed loop (`afbl_jax.studies.numpy_loop`) of each case of ``batch`` (AFBL), one
+    after the other on one core; accuracy against ``ref`` (the x64 reference of the same
+    cases)."""
+    try:
+        import scipy.integrate  # noqa: F401
+    except ImportError:
+        raise ValueError(
+            f"the {MONTECARLO_SCIPY_ROW} baseline needs scipy (pip install scipy, or leave it "
+            "out of --strategies)."
+        ) from None
+    from .numpy_loop import cases_from_batch
+
+    rss0 = _rss_mb()
+    cases = cases_from_batch(batch, AFBL())  # reading the case data is not timed
+    t = time.perf_counter()
+    results = [c.solve(rtol=1e-6, atol=1e-8) for c in cases]
+    run = time.perf_counter() - t
+    n = len(cases)
+    ise = np.array([r.ise[:2] for r in results])
+    ok = np.array([r.status == "ok" for r in results]) & np.all(np.isfinite(ref[:n]), axis=1)
+    return {
+        "strategy": MONTECARLO_SCIPY_ROW,
+        "N": n,
+        "dtype": "float64",
+        "rtol": 1e-6,
+        "atol": 1e-8,
+        "devices": 1,
+        "position_loop": batch.position_loop is not None,
+        "sims_per_s": n / run,
+        "seconds": run,
+        "compile_s": 0.0,
+        "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+        "max_rel_ise_error": _rel_error(ise, ref[:n], ok),
+        "error_cases": n,
+        "n_ok": int(sum(r.status == "ok" for r in results)),
+        "num_steps_max": max(r.steps for r in results),
+        "num_steps_mean": float(np.mean([r.steps for r in results])),
+    }
+
+
 def measure_diffrax_loop(scenarios: Scenario, ref: np.ndarray) -> dict:
     n = scenarios.t0.shape[0]
     ctrl, rss0 = AFBL(), _rss_mb()
@@ -578,6 +634,8 @@ class BenchConfig:
         ref_cases: cases with a tight x64 reference (accuracy on the first min(N, ref_cases)).
         seed: seed of the cases.
         montecarlo_ref_cases: cases of the Monte-Carlo rows with a tight x64 reference.
+        scipy_montecarlo_cases: cases of the ``scipy_rk45_montecarlo_cases`` loop (at most
+            ``montecarlo_ref_cases``; sims/s does not depend on N).
     """
 
     out: Path
@@ -588,6 +646,7 @@ class BenchConfig:
     ref_cases: int = 4096
     seed: int = 0
     montecarlo_ref_cases: int = 64
+    scipy_montecarlo_cases: int = 4
 
 
 def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> list[dict]:
@@ -654,22 +713,45 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
                     f"{rows[-1]['max_rel_ise_error']:.2e}"
                 )
     mc_rows = [name for name in MONTECARLO_CASE_ROWS if name in strategies]
-    if mc_rows:
+    mc_scipy = MONTECARLO_SCIPY_ROW in strategies
+    if mc_rows or mc_scipy:
         n_mc_ref = min(n_max, config.montecarlo_ref_cases)
-        for name in mc_rows:
+        refs: dict[str, np.ndarray] = {}
+
+        def case_batch(name):
             log(f"{name}: sampling {n_max} cases, x64 Dopri8 reference of {n_mc_ref} ...")
             batch = montecarlo_case_batch(name, n_max, seed)
-            mc_ref = montecarlo_reference(batch.take(np.arange(n_mc_ref)))
+            refs[name] = montecarlo_reference(batch.take(np.arange(n_mc_ref)))
+            return batch
+
+        sampled = {}
+        if mc_scipy:
+            batch = sampled["montecarlo_cases"] = case_batch("montecarlo_cases")
+            k = max(1, min(config.scipy_montecarlo_cases, n_mc_ref))
+            log(f"{MONTECARLO_SCIPY_ROW} on {k} cases ...")
+            rows.append(
+                measure_scipy_montecarlo_cases(batch.take(np.arange(k)), refs["montecarlo_cases"])
+            )
+            log(f"  {rows[-1]['sims_per_s']:.2f} sims/s, err {rows[-1]['max_rel_ise_error']:.2e}")
+        for name in mc_rows:
+            batch = sampled[name] if name in sampled else case_batch(name)
             for n in sorted(int(s) for s in sizes):
                 log(f"{name} N={n} ...")
-                rows.append(measure_montecarlo_cases(name, batch.take(np.arange(n)), mc_ref))
+                rows.append(measure_montecarlo_cases(name, batch.take(np.arange(n)), refs[name]))
                 log(
                     f"  {rows[-1]['sims_per_s']:.1f} sims/s, err "
                     f"{rows[-1]['max_rel_ise_error']:.2e}"
                 )
-    base = next((r["sims_per_s"] for r in rows if r["strategy"] == "scipy_rk45_loop"), None)
+    # each row's ratio is to the scipy loop on its own kind of cases, measured in this run: the
+    # canonical rows to scipy_rk45_loop, the Monte-Carlo case rows to scipy_rk45_montecarlo_cases
+    # (to scipy_rk45_loop when that row is not measured)
+    speed = {r["strategy"]: r["sims_per_s"] for r in rows if r["strategy"].startswith("scipy_")}
     for r in rows:
-        r["ratio_to_scipy"] = None if base is None else r["sims_per_s"] / base
+        baseline = "scipy_rk45_loop"
+        if r["strategy"] in (MONTECARLO_SCIPY_ROW, *MONTECARLO_CASE_ROWS) and mc_scipy:
+            baseline = MONTECARLO_SCIPY_ROW
+        r["ratio_baseline"] = baseline if baseline in speed else None
+        r["ratio_to_scipy"] = r["sims_per_s"] / speed[baseline] if baseline in speed else None
     meta = run_metadata(
         {
             "sizes": sorted(int(s) for s in sizes),
@@ -680,6 +762,10 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
             "seed": seed,
             "case": "paper_scenario('uncertain','step'), AFBL paper gains, 20 s; payload fraction "
             "U[0,0.5], torque/force pulse scales U[0.5,1.5]",
+            "montecarlo_cases": "the default Monte-Carlo distribution's cases 0..N-1 of the seed, "
+            "AFBL paper gains",
+            "montecarlo_ref_cases": config.montecarlo_ref_cases,
+            "scipy_montecarlo_cases": config.scipy_montecarlo_cases,
             "reference": REFERENCE,
             "reference_check_max_rel_error": reference_check,
         }

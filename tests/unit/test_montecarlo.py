@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import jax
@@ -488,6 +489,41 @@ def test_report_numbers_recomputed_from_file(study):
     assert meta["config"]["seed"] == SEED and meta["config"]["n_cases"] == N
     assert "git_revision" in meta and meta["versions"]["jax"] and meta["versions"]["pyarrow"]
     assert meta["invocations"][0]["chunks_already_done"] == 0
+
+
+def test_phase_times_add_up_to_the_wall_time(study, controllers, dist, tmp_path):
+    """meta.json records each phase of the invocation (start-up as given, compilation, runs,
+    report), none negative, summing to ``total`` and to the call's wall time."""
+    t0 = time.perf_counter()
+    mc.run_study(
+        mc.StudyConfig(
+            controllers, tmp_path / "run", N, SEED, dist, chunk_size=CHUNK, progress=False
+        ),
+        echo=None,
+        startup_seconds=1.25,
+    )
+    wall = time.perf_counter() - t0
+    phases = json.loads((tmp_path / "run" / "meta.json").read_text())["phases_seconds"]
+    print({k: round(v, 3) for k, v in phases.items()}, f"wall {wall:.3f} s")
+    assert set(phases) == {*mc.PHASES, "total"}
+    assert all(phases[k] >= 0 for k in mc.PHASES) and phases["startup"] == 1.25
+    assert phases["total"] == pytest.approx(sum(phases[k] for k in mc.PHASES), rel=1e-12)
+    assert phases["total"] - 1.25 == pytest.approx(wall, rel=0.05, abs=0.2)
+
+
+def test_compile_clock_counts_overlapping_spans_once():
+    clock = mc.CompileClock()
+    trace, lower, backend = (
+        "/jax/core/compile/jaxpr_trace_duration",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration",
+        "/jax/core/compile/backend_compile_duration",
+    )
+    for event, a, b in [(trace, 0.0, 2.0), (lower, 1.0, 3.0), (backend, 5.0, 6.0), ("/x", 7, 9)]:
+        clock._span(event, a, b)
+    assert clock.seconds == pytest.approx(4.0) and clock.programs == 1
+    with clock.measure():  # a real compilation inside adds its span
+        jax.jit(lambda x: jnp.sin(x) * 3.0 + 1.0)(jnp.arange(7.0)).block_until_ready()
+    assert clock.seconds > 4.0 and clock.programs >= 2
 
 
 def test_wilson_interval():

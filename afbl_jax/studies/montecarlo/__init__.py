@@ -55,6 +55,8 @@ from ._sampler import sample_cases_at as sample_cases_at
 from ._sampler import variate_groups as variate_groups
 from ._sampler import variate_layout as variate_layout
 from ._sampler import variate_names as variate_names
+from ._study import PHASES as PHASES
+from ._study import CompileClock as CompileClock
 from ._study import StudyConfig as StudyConfig
 from ._study import merge_study as merge_study
 from ._study import run_study as run_study
