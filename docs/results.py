@@ -387,6 +387,20 @@ def render_rare_event(doc: dict) -> str:
     )
 
 
+def render_study_time(doc: dict) -> str:
+    """The seconds of each phase of a recorded `afbl montecarlo` (``phases_seconds`` of the
+    meta.json it wrote) and the command's wall time."""
+    meta = _files(doc, "meta.json")
+    phases = meta["phases_seconds"]
+    names = ["startup", "compilation", "runs", "report", "total"]
+    cells = ["-" if phases.get(n) is None else f"{phases[n]:.1f}" for n in names]
+    head = ["start-up and imports s", "tracing and compilation s", "runs s", "report s"]
+    head += ["total s", "command wall s"]
+    wall = doc["provenance"].get("wall_s")
+    rows = [[*cells, "-" if wall is None else f"{wall:.1f}"]]
+    return _table(head, rows, "r" * len(head)) + "\n\n" + provenance_line(doc, load=True)
+
+
 def render_test_times(doc: dict) -> str:
     """Seconds per test file of the default test run (`studies/test_times.py`)."""
     t = _files(doc, "test_times.json")
@@ -424,6 +438,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "tuning-controllers": render_tuning_controllers,
     "unmodeled-grid": render_unmodeled,
     "test-times": render_test_times,
+    "study-time": render_study_time,
 }
 """Kind -> function of a result file's document (with its provenance) to Markdown."""
 

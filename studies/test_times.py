@@ -32,7 +32,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("pytest_args", nargs="*", help="extra arguments for pytest")
     args = parser.parse_args(argv)
     out = Path(args.out)
-    command = [sys.executable, "-m", "pytest", "--durations=0", "--durations-min=0", "-q", *args.pytest_args]
+    command = [
+        sys.executable,
+        "-m",
+        "pytest",
+        "--durations=0",
+        "--durations-min=0",
+        "-q",
+        *args.pytest_args,
+    ]
     print(f"running {' '.join(command[1:])} in {ROOT} ...", flush=True)
     t0 = time.perf_counter()
     proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)

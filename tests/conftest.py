@@ -3,8 +3,6 @@ import os
 import shutil
 import tempfile
 
-from .xla_flags import TEST_XLA_FLAGS
-
 # One persistent compilation cache for the whole test session, made by the first pytest
 # process (xdist's controller) before JAX is imported and inherited through the environment by
 # its workers, the `afbl` subprocesses and the notebook kernels, so that a program compiled by
@@ -18,9 +16,6 @@ if _OWNS_SESSION_CACHE:
 os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[_SESSION_CACHE]
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
-# Compile faster in every test process (xla_flags.py says why)
-if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

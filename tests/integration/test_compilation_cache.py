@@ -82,15 +82,20 @@ def test_cache_off_and_unusable_folder(tmp_path, monkeypatch):
     assert off["folder"] == "None" and off["hits"] == 0
     monkeypatch.setenv("AFBL_COMPILATION_CACHE", "off")
     assert A.configure_compilation_cache() is None  # in-process: nothing changed
-    # a folder that cannot be created: one warning line, the command still runs
+    # a folder that cannot be created: one warning line, then the command runs (here to its
+    # one-line usage error: --help answers before the cache is set up)
     blocker = tmp_path / "file"
     blocker.write_text("")
+    code = "import sys; from afbl_jax.cli import main; sys.exit(main(sys.argv[1:]))"
     done = subprocess.run(
-        [sys.executable, "-c", "from afbl_jax.cli import main; main(['reproduce', '--help'])"],
+        [sys.executable, "-c", code, "bench", "--out", str(tmp_path / "b"), "--sizes", "0"],
         env=_env({"AFBL_COMPILATION_CACHE": str(blocker / "xla")}),
         capture_output=True,
         text=True,
     )
-    assert done.returncode == 0, done.stderr
-    warning = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(warning) == 1 and warning[0].startswith("afbl: warning: no compilation cache")
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 2, done.stderr
+    assert lines[0].startswith("afbl: warning: no compilation cache")
+    assert lines[1].startswith("afbl bench: error:")
+    assert not (tmp_path / "b").exists()

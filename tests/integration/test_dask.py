@@ -23,8 +23,6 @@ from afbl_jax.cli import main as cli_main
 from afbl_jax.studies import montecarlo as mc
 from afbl_jax.studies.executors import DaskExecutor, LocalExecutor, map_batches
 
-from ..xla_flags import TEST_XLA_FLAGS
-
 distributed = pytest.importorskip("distributed")
 
 N = 48  # twelve chunks of 4 cases (the chunk programs of tests/unit/test_montecarlo.py)
@@ -417,7 +415,7 @@ def test_dask_scaling_script(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("before\n<!-- dask-scaling:begin -->\nold\n<!-- dask-scaling:end -->\nafter\n")
     out = tmp_path / "scaling.json"
-    env = {**os.environ, "XLA_FLAGS": TEST_XLA_FLAGS}
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     r = subprocess.run(
         [sys.executable, str(ROOT / "studies" / "dask_scaling.py"), "--cases", "32"]
         + ["--rounds", "1", "--json", str(out), "--page", str(page)],

@@ -13,8 +13,6 @@ from pathlib import Path
 
 import pytest
 
-from ..xla_flags import TEST_XLA_FLAGS
-
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"
 
@@ -45,7 +43,8 @@ def _check_importance_estimate(est: dict, results: Path) -> None:
 
 
 def _run(script: str, *args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XLA_FLAGS": TEST_XLA_FLAGS}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("XLA_FLAGS", None)
     return subprocess.run(
         [sys.executable, str(STUDIES / script), *args],
         capture_output=True,
@@ -66,8 +65,22 @@ def test_every_study_script_is_tested():
         "benchmark.py",
         "rare_failures.py",
         "dask_scaling.py",  # tests/integration/test_dask.py
+        "test_times.py",
     }
     assert {p.name for p in STUDIES.glob("*.py")} == tested
+
+
+def test_test_times_script(tmp_path):
+    """The per-file times of a small pytest run: every test of the file counted once, its
+    seconds within the wall time, the run's counts parsed."""
+    out = tmp_path / "times.json"
+    r = _run("test_times.py", "--out", str(out), "--", "tests/unit/test_stats.py", "-n", "0")
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    assert doc["exit_code"] == 0 and doc["failed"] == 0 and doc["passed"] > 0
+    (row,) = doc["files"]
+    assert row["file"] == "tests/unit/test_stats.py" and row["tests"] == doc["passed"]
+    assert 0 < row["seconds"] <= doc["wall_s"]
 
 
 def test_reproduce_paper_script(tmp_path):

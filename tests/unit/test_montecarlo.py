@@ -34,7 +34,6 @@ from afbl_jax.scenario import (
 from afbl_jax.studies import montecarlo as mc
 
 from ..helpers import count_compiles
-from ..xla_flags import TEST_XLA_FLAGS
 
 CHUNK = 4
 N = 6  # two chunks, the second padded
@@ -604,10 +603,7 @@ SHARD_SCRIPT = textwrap.dedent("""
 
 
 def test_sharded_equals_unsharded():
-    env = {
-        **__import__("os").environ,
-        "XLA_FLAGS": f"--xla_force_host_platform_device_count=2 {TEST_XLA_FLAGS}",
-    }
+    env = {**__import__("os").environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     r = subprocess.run(
         [sys.executable, "-c", SHARD_SCRIPT],
         capture_output=True,
