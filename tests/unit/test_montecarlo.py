@@ -289,6 +289,27 @@ def test_default_strategy_within_accuracy_bound(study, controllers, dist):
             np.testing.assert_allclose(f64[k], ref[k], rtol=1e-4, err_msg=k)
 
 
+@pytest.mark.slow  # two compilations of a 16-case group
+def test_default_strategy_ise_within_bound_of_tight_reference(controllers, dist):
+    """The default strategy on a group of default-distribution cases (position hold, wind,
+    steps: one group of 16 cases, the union of their jump times) meets the 1e-3 relative ISE
+    bound (attitude, altitude, position) against the float64 ensemble (rtol 1e-6, atol 1e-8,
+    far inside the bound). AFBL's altitude ISE is small, so it sees float32 time errors
+    first: the group holds a case whose error is above the bound when the state is not
+    advanced over the two ulps of time skipped at each jump time (`afbl_jax.sim.lean_loop`,
+    ``bridge_jumps``)."""
+    chunk = mc.sample_cases(dist, 16, 0, start=32)
+    ctrl = controllers["afbl"]
+    got = mc.run_chunk(ctrl, chunk)
+    ref = mc.run_chunk(ctrl, chunk, strategy="ensemble")  # float64, rtol 1e-6, atol 1e-8
+    ok = (np.asarray(got["status"]) == 0) & (np.asarray(ref["status"]) == 0)
+    assert ok.sum() >= 12
+    for k in ("ise_attitude", "ise_altitude", "ise_position"):
+        r = np.asarray(ref[k], np.float64)[ok]
+        err = np.abs(np.asarray(got[k], np.float64)[ok] - r) / np.abs(r)
+        assert err.max() <= 1e-3, (k, err.max())
+
+
 def test_chunked_equals_unchunked(study, dist, controllers):
     """vmap: a case's numbers do not depend on the chunking. Default (float32 ensembles): the
     groups are blocks of 4 consecutive case indices whatever the chunk size (a multiple of 4),

@@ -17,7 +17,10 @@ every closed loop, including the distribution's ``[unmodeled]`` section):
   tight float64 reference (`afbl bench` reports it; the tests check it case by case). The
   tolerance is tighter than the benchmark's ``ensemble_f32`` rows (rtol 1e-5, atol 1e-6)
   because cases that drive the rotors into their limits, where the clipping kinks meet
-  float32 round-off, need it to meet the bound.
+  float32 round-off, need it to meet the bound. The lean integrator advances a float32 state
+  over the two ulps of time skipped at each jump time (`afbl_jax.sim.lean_loop`,
+  ``bridge_jumps``), without which small tracking errors (AFBL's altitude ISE) exceed the
+  bound.
 - ``"ensemble"``: the same in float64 (default tolerances rtol 1e-6, atol 1e-8).
 - ``"vmap"``: ``jax.vmap`` over `afbl_jax.simulate` in float64 (every case its own step
   sequence; results independent of how cases are chunked).
