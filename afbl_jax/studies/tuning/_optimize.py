@@ -3,8 +3,10 @@
 
 - ``lbfgs``: `optax.lbfgs` with a backtracking Armijo line search
   (`optax.scale_by_backtracking_linesearch`: sufficient decrease f(z + a d) <= f(z) +
-  1e-4 a g.d, the step a halved after each rejected trial, at most ``linesearch_steps``
-  trials) on the fixed training set. A trial is a forward evaluation of the objective; after
+  1e-4 a g.d, the step a times `LS_DECREASE` after each rejected trial, at most
+  ``linesearch_steps`` trials) on the fixed training set. When no trial decreases enough the
+  iterate stays (the objective never goes up) and the next search starts below the last
+  trial step. A trial is a forward evaluation of the objective; after
   the step one value-and-gradient at the new point serves as the next iteration's start, so an
   iteration costs at most ``linesearch_steps`` + 1 forward passes, one of them with its
   gradient (recorded per iteration as ``evaluations``).
@@ -65,6 +67,8 @@ CHECKPOINT_ARRAYS = "checkpoint.eqx"
 CHECKPOINT_CMA = "checkpoint_cma.pkl"
 CHECKPOINT_STATE = "checkpoint.json"
 CHANNELS = ("phi", "theta", "psi", "z")
+LS_DECREASE = 0.3
+"""Factor of the L-BFGS trial step after each rejected trial."""
 
 
 @dataclass(frozen=True)
@@ -181,7 +185,7 @@ def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
     if config.method == "lbfgs":
         # the trial counter starts at 0 and the loop runs while it is <= the maximum
         search = optax.scale_by_backtracking_linesearch(
-            max_backtracking_steps=config.linesearch_steps - 1, decrease_factor=0.5
+            max_backtracking_steps=config.linesearch_steps - 1, decrease_factor=LS_DECREASE
         )
         return optax.lbfgs(linesearch=search)
     if config.schedule == "cosine":
@@ -238,6 +242,7 @@ class Tuner:
         self.executor_record: dict | None = None  # the last run's Dask cluster (None: local)
         self._session = None
         self._start = None  # L-BFGS: (objective, gradient) at the current z
+        self._estimate = None  # L-BFGS: seconds a next iteration takes at most (compiled)
         self.space = config.space()
         self.cases = (
             cases
@@ -329,14 +334,24 @@ class Tuner:
                 (value, _), grad = self.value_and_grad(z)
             else:
                 value, grad = self._start
-            z, state = _lbfgs_step(
+            new_z, new_state = _lbfgs_step(
                 cfg.step_key(), z, state, value, grad, self.cases, self.reference
             )
-            trials = int(optax.tree_utils.tree_get(state, "num_linesearch_steps"))
-            (new_value, _), new_grad = self.value_and_grad(z)
+            trials = int(optax.tree_utils.tree_get(new_state, "num_linesearch_steps"))
+            gnorm = float(optax.tree_utils.tree_norm(grad))
+            if not float(optax.tree_utils.tree_get(new_state, "decrease_error")) <= 0.0:
+                # no trial decreased enough: stay, and start the next search below the last
+                # trial step (the curvature memory is kept as it was)
+                rate = optax.tree_utils.tree_get(new_state, "learning_rate")
+                state = optax.tree_utils.tree_set(state, learning_rate=rate * LS_DECREASE)
+                return z, state, float(value), gnorm, trials
+            t = time.perf_counter()
+            (new_value, _), new_grad = self.value_and_grad(new_z)
+            jax.block_until_ready(new_grad)
+            # the cost of a next iteration at most: its trials and one value-and-gradient
+            self._estimate = (cfg.linesearch_steps + 1) * (time.perf_counter() - t)
             self._start = (new_value, new_grad)
-            gnorm = optax.tree_utils.tree_norm(grad)
-            return z, state, float(new_value), float(gnorm), trials + 1
+            return new_z, new_state, float(new_value), gnorm, trials + 1
         (value, _), grads = self.value_and_grad(z)
         z, state, gnorm = _adam_step(cfg.step_key(), z, state, grads)
         return z, state, None, float(gnorm), 1
@@ -447,7 +462,9 @@ class Tuner:
             costs = None
             if loss is None:
                 loss, costs = self.loss_and_costs(z)
-            last = time.perf_counter() - t_it
+            took = time.perf_counter() - t_it
+            # the estimate of the next iteration (the first one's time includes compiling)
+            last = took if self._estimate is None else min(took, self._estimate)
             row = self._row(it + 1, z, loss, elapsed(), costs, gnorm, nev)
             history.append(row)
             if row["loss"] < best[0]:
@@ -457,7 +474,7 @@ class Tuner:
             if progress:
                 log(
                     f"iteration {it + 1}/{end}: objective {row['loss']:.5e}, "
-                    f"{nev} evaluations, {last:.1f} s (total {row['time_s']:.1f} s)"
+                    f"{nev} evaluations, {took:.1f} s (total {row['time_s']:.1f} s)"
                 )
             done = it + 1
             if (

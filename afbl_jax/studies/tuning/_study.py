@@ -281,7 +281,12 @@ def run_tuning(
         result.costs,
         result.reference,
         config.objective,
-        int(np.sum(np.asarray(tuner.reference_costs.failed))),
+        int(
+            np.sum(
+                np.asarray(tuner.reference_costs.failed)
+                & (np.asarray(tuner.reference_costs.weights()) > 0)
+            )
+        ),
     )
     on_box = tuner.space.on_box(result.params)
     cases = training_cases(
