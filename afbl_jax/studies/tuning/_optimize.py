@@ -19,10 +19,10 @@
   cluster's workers (as many groups as task slots; a group boundary never splits an ensemble
   group of cases), the same numbers as the one call.
 
-Every method stops after ``steps`` iterations (generations for CMA-ES) or before an iteration
-that would end past ``time_budget`` seconds (estimated from the last iteration). The clock
-starts after compiling one iteration (`Tuner.warmup`, timed separately as ``compile_s``) and
-continues across a resume. The history has
+Every method stops after ``steps`` iterations (generations for CMA-ES) or at the time budget
+(`Tuner.run`: counted after compiling one iteration, or from a given start with compilation
+included and an unfinished iteration abandoned at the deadline); the clock continues across a
+resume. The history has
 one row per iteration: the objective at the gains held after it, the wall time, the gains.
 """
 
@@ -83,7 +83,8 @@ class TuneConfig:
         steps: iterations (L-BFGS / Adam steps, CMA-ES generations).
         method: "lbfgs" (default), "adam" or "cmaes".
         linesearch_steps: L-BFGS: most trial steps (forward evaluations) per iteration.
-        time_budget: wall-time budget [s] of the optimisation (None: no budget).
+        time_budget: wall-time budget [s] (None: no budget): of the iterations, or from a
+            given start (`Tuner.run`'s ``started``: compilation included).
         learning_rate, schedule, clip_norm: Adam (peak step in z units; "cosine" decays to
             10 % over ``steps``).
         sigma, population: CMA-ES initial step size (z units) and population (None: the
