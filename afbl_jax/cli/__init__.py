@@ -19,6 +19,7 @@ Monte-Carlo run resumes when the same command is run again).
 
 from __future__ import annotations
 
+import os
 import sys
 
 from ..studies.executors import ClusterError
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     try:
-        return int(args.func(args) or 0)
+        return _end(int(args.func(args) or 0))
     except ValueError as err:  # UsageError, and validation of files and settings in the library
         _error(args.command, str(err))
         return 2
@@ -93,6 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"afbl {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _end(rc: int) -> int:
+    """``rc``, or end the process with it at once when a command abandoned a computation at
+    its time budget (still running in a thread: the interpreter's shutdown would abort)."""
+    tuning = sys.modules.get("afbl_jax.studies.tuning._optimize")
+    if tuning is not None and tuning.abandoned_work():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
 
 
 def _error(command: str, message: str) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 from .._validation import MAX_SEED
 from ._common import (
@@ -32,7 +33,7 @@ def add_tuning_args(p) -> None:
         "--risk",
         default="mean",
         choices=["mean", "cvar"],
-        help="robust objective: mean or CVaR over the cases",
+        help="robust objective: mean or (smoothed) CVaR over the cases",
     )
     p.add_argument(
         "--cvar-level", type=float, default=0.9, help="CVaR level alpha (mean of the worst 1-alpha)"
@@ -45,13 +46,20 @@ def add_tuning_args(p) -> None:
         dest="method",
         default="lbfgs",
         choices=["lbfgs", "adam", "cmaes"],
-        help="optimiser: L-BFGS with zoom line search, Adam, or CMA-ES (gradient-free)",
+        help="optimiser: L-BFGS with a backtracking line search, Adam, or CMA-ES (gradient-free)",
+    )
+    p.add_argument(
+        "--linesearch-steps",
+        type=int,
+        default=4,
+        help="L-BFGS: most trial steps (forward evaluations) per iteration",
     )
     p.add_argument(
         "--time-budget",
         type=float,
         default=None,
-        help="wall-time budget of the optimisation [s] (after compiling); default: none",
+        help="wall-time budget [s]: afbl tune: of the whole command (compilation and "
+        "evaluation included); tune-compare: of each run's iterations; default: none",
     )
     p.add_argument("--lr", type=float, default=0.05, help="Adam: peak step, in z units")
     p.add_argument(
@@ -74,7 +82,10 @@ def add_tuning_args(p) -> None:
     p.add_argument("--w-effort", type=float, default=0.0, help="weight of effort / paper's")
     p.add_argument("--w-saturation", type=float, default=0.0, help="weight of saturation / paper's")
     p.add_argument(
-        "--w-divergence", type=float, default=10.0, help="objective added per failed case"
+        "--w-divergence",
+        type=float,
+        default=10.0,
+        help="weight of the failure hinge (margin) or added per failed case (step)",
     )
     p.add_argument(
         "--effort-limit",
@@ -89,6 +100,34 @@ def add_tuning_args(p) -> None:
         help="limit: mean saturation <= this x the paper's gains' (floored at 1e-4 s)",
     )
     p.add_argument("--penalty", type=float, default=100.0, help="weight of limit violations")
+    p.add_argument(
+        "--failure",
+        default="margin",
+        choices=["margin", "step"],
+        help="failure term: margin (saturated softplus hinge on the smooth failure margin, "
+        "continuous in the gains) or step (a constant per failed case)",
+    )
+    p.add_argument(
+        "--reserve", type=float, default=0.3, help="margin reserve where the hinge starts"
+    )
+    p.add_argument(
+        "--margin-temperature",
+        type=float,
+        default=0.025,
+        help="temperature of the smooth margin and the hinge",
+    )
+    p.add_argument(
+        "--loss-cap",
+        type=float,
+        default=50.0,
+        help="cap of a case's performance term (a failed case costs cap + w_divergence)",
+    )
+    p.add_argument(
+        "--cvar-temperature",
+        type=float,
+        default=0.05,
+        help="beta of the smoothed CVaR (0: exact mean of the worst cases)",
+    )
     p.add_argument(
         "--dtype",
         default="float64",
@@ -114,7 +153,7 @@ def add_tuning_args(p) -> None:
         default=64,
         help="solver steps per sample interval (digital control; gradient memory grows with it)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true", help="no progress lines")
 
 
 def register(sub) -> None:
@@ -156,6 +195,19 @@ def check_tuning_args(args) -> None:
         math.isfinite(args.time_budget) and args.time_budget > 0
     ):
         raise UsageError(f"--time-budget must be a number of seconds > 0, got {args.time_budget}.")
+    from ..studies.tuning import ObjectiveConfig
+
+    try:
+        ObjectiveConfig(
+            cvar_temperature=args.cvar_temperature,
+            reserve=args.reserve,
+            loss_cap=args.loss_cap,
+            margin_temperature=args.margin_temperature,
+        )
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if args.linesearch_steps < 1:
+        raise UsageError(f"--linesearch-steps must be >= 1, got {args.linesearch_steps}.")
     if args.cases < 1 or args.steps < 0:
         raise UsageError(f"need --cases >= 1 and --steps >= 0, got {args.cases}, {args.steps}.")
 
@@ -167,6 +219,11 @@ def config_from_args(args, seed_value: int = 0):
         objective=args.objective,
         risk=args.risk,
         cvar_level=args.cvar_level,
+        cvar_temperature=args.cvar_temperature,
+        failure=args.failure,
+        reserve=args.reserve,
+        loss_cap=args.loss_cap,
+        margin_temperature=args.margin_temperature,
         w_attitude=args.w_attitude,
         w_altitude=args.w_altitude,
         w_effort=args.w_effort,
@@ -188,6 +245,7 @@ def config_from_args(args, seed_value: int = 0):
         seed=getattr(args, "seed", seed_value),
         steps=args.steps,
         method=args.method,
+        linesearch_steps=args.linesearch_steps,
         time_budget=args.time_budget,
         learning_rate=args.lr,
         schedule=args.schedule,
@@ -202,6 +260,7 @@ def config_from_args(args, seed_value: int = 0):
 
 
 def run(args) -> int:
+    started = time.perf_counter()
     from ..studies.tuning import run_tuning
 
     check_tuning_args(args)
@@ -230,6 +289,7 @@ def run(args) -> int:
         figures=not args.no_figures,
         progress=not args.no_progress,
         executor=executor,
+        started=started,
     )
     print(
         f"wrote {args.out}/gains.json, history.csv, evaluation.txt/json, meta.json"

@@ -10,26 +10,63 @@ and lambda (paper value for lambda: our default 4 1/s); FBL+PID tunes P, I, D.
 Per-case terms (closed-loop cost states, `afbl_jax.COST_LAYOUT`): ISE_att [rad^2 s], ISE_alt
 [m^2 s] (eqs. 42, 43), effort = integral of |u - u_hover|^2 dt, saturation = integral of
 sum_i (excess_i / W_hover)^2 dt [s] (C^1, zero while no rotor saturates), failure (divergence,
-solver failure; a failed case keeps the costs accumulated until it stopped).
+solver failure; a failed case keeps the costs accumulated until it stopped) and the smooth
+failure margin m_i = `afbl_jax.smooth_margin` of the run's peak attitude and altitude errors
+(temperature ``margin_temperature``; m < 0 inside the failure limits, m >= 0 at them).
 
-Normalisation: each term is divided by its mean at the reference gains (the paper's) on the
-same cases (`reference_terms`), so the weights are relative importances and the objective at
-the paper's gains is w_att + w_alt + w_effort + w_sat (+ the failure term). Per case:
+Cases outside the vehicle's flight envelope (``envelope_cause`` not 0 in the case inputs,
+decided before simulating, `afbl_jax.sim.Status.outside_envelope`) are left out: they carry
+weight w_i = 0 in every mean below (the others w_i = 1).
 
-    L_i = w_att ISE_att,i / ref_att + w_alt ISE_alt,i / ref_alt
-          + w_effort effort_i / ref_effort + w_sat sat_i / ref_sat
-          + w_div [failed_i] (1 + fraction of the run not simulated)
+Normalisation: each term is divided by its (weighted) mean at the reference gains (the
+paper's) on the same cases (`reference_terms`), so the weights are relative importances. With
+P_i = w_att ISE_att,i / ref_att + w_alt ISE_alt,i / ref_alt + w_effort effort_i / ref_effort
++ w_sat sat_i / ref_sat the per-case loss is, for ``failure="margin"`` (default, continuous in
+the gains):
 
-aggregated as a mean or CVaR over cases (``robust``; a sum for ``nominal``), plus smooth
-quadratic penalties on the limits (relative violations squared, weight ``penalty``):
+    surviving case:  L_i = (1 - S(m_i)) psi(P_i) + S(m_i) K + w_div H(m_i),
+    failed case:     L_i = K + w_div,
+
+    psi(P) = P - kappa softplus((P - K) / kappa)   (a smooth min(P, K), kappa = K / 10),
+    H(m) = tau [softplus((m + rho) / tau) - softplus((m + 4 tau) / tau)] / (rho - 4 tau),
+    S(m) = smoothstep((m + rho) / rho),
+
+with K = ``loss_cap``, rho = ``reserve`` and tau = ``margin_temperature`` (rho > 4 tau). H is
+a softplus hinge on m + rho, the reserve used up, saturated at 1: it starts to grow where the
+margin has used up all but the reserve (m = -rho) and reaches 1 (within e^-4 tau / (rho -
+4 tau)) at m = -4 tau, before the limit; S = 3x^2 - 2x^3 clipped to [0, 1] (0 for m <= -rho, 1
+for m >= 0) moves the performance term to the cap K over the reserve. Every case's loss is
+nondecreasing in its margin (psi < K) and at most K + w_div, the cost of a failed case. At the
+gains where a case starts to fail its run stops early, its integrals jump and its margin
+(peaks before the stop) no longer follows the gains; its loss does not jump where the margin
+has reached the limit there (m >= 0, as for an error that crosses its divergence limit): both
+sides are then K + w_div. It does jump, by at most (1 - S(m)) (K - psi) + w_div (1 - H(m)),
+where a run fails with its margin short of the limit (a divergence of |phi| or |theta| while
+the error to a nonzero reference stays below the limit, or a solver failure). A case whose
+performance term is above K counts as a failure.
+For ``failure="step"`` (the former staircase objective):
+
+    L_i = P_i + w_div [failed_i] (1 + fraction of the run not simulated).
+
+The aggregate over cases is a sum (``nominal``), the mean or the CVaR at level alpha
+(``robust``). ``risk="cvar"`` with ``cvar_temperature`` beta > 0 is the smoothed
+Rockafellar-Uryasev form
+
+    CVaR_beta(L) = min_t  t + 1 / (1 - alpha) sum_i w_i beta softplus((L_i - t) / beta) / sum_i w_i,
+
+with the level t minimised exactly for every evaluation (the objective is convex in t: a
+bisection on the optimality condition sum_i w_i sigmoid((L_i - t*) / beta) / sum_i w_i =
+1 - alpha), which equals minimising t jointly with the gains; by the envelope theorem the
+gradient is that of the expression at t* held fixed, a soft tail weighting
+w_i sigmoid((L_i - t*) / beta) / ((1 - alpha) sum w). It bounds the exact CVaR from above by at
+most beta log 2 / (1 - alpha). beta = 0: the mean of the worst ceil((1 - alpha) n) cases.
+Plus smooth quadratic penalties on the limits (relative violations squared, weight
+``penalty``):
 
     mean effort <= effort_limit x paper's;  mean saturation <= saturation_limit x max(paper's,
     SATURATION_FLOOR).
 
-Failures are a step function of the gains (zero gradient): gradient methods see them through
-the value (L-BFGS's line search rejects a step into failing gains; CMA-ES ranks by value) and
-through the saturation penalty, which grows before a run fails. Cases that fail at every gain
-(unrecoverable gusts) add a constant. `limit_report` says which limits are active.
+`limit_report` says which limits are active.
 
 Gradients: `jax.value_and_grad` through `afbl_jax.simulate_batch` with ``strategy="ensemble"``
 (diffrax's ``diffeqsolve`` per group of 4 cases, `diffrax.RecursiveCheckpointAdjoint`:
@@ -48,6 +85,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ...metrics import smooth_margin
 from ...model import CONTROLLERS, AbstractController, QuadrotorParams
 from ...model.controllers import DEFAULT_LAMBDA, PAPER_AFBL_GAINS, PAPER_FBL_GAINS
 from ...scenario import PROFILES, SCENARIO_KINDS, paper_scenario, stack_scenarios
@@ -62,6 +100,7 @@ PAPER_GAINS = {
 }
 """Centre of the default gain box: Tables 2/3 (and lambda = 4 1/s, our default)."""
 OBJECTIVES = ("nominal", "robust")
+FAILURES = ("margin", "step")
 RISKS = ("mean", "cvar")
 DTYPES = ("float64", "float32")
 SATURATION_FLOOR = 1e-4
@@ -159,7 +198,18 @@ class ObjectiveConfig:
 
     Attributes:
         objective: "robust" (sampled cases) or "nominal" (the four canonical scenarios).
-        risk, cvar_level: "mean" or "cvar" (mean of the worst ceil((1 - alpha) n) cases).
+        risk, cvar_level: "mean" or "cvar" at level alpha (module docstring).
+        cvar_temperature: beta of the smoothed CVaR, in units of the normalised loss (0: the
+            mean of the worst ceil((1 - alpha) n) cases).
+        failure: "margin" (default: softplus hinge on the smooth failure margin, continuous
+            in the gains) or "step" (a constant per failed case; module docstring).
+        reserve: rho, the margin reserve [-] where the hinge starts (fraction of the failure
+            limits).
+        loss_cap: K, the cap of a case's performance term and the cost of a failure without
+            the hinge (normalised units: the mean case at the paper's gains costs
+            w_att + w_alt).
+        margin_temperature: tau [-] of `afbl_jax.smooth_margin` and of the hinge's softplus.
+        n_save: samples per run for the peak errors of the margin.
         w_attitude, w_altitude, w_effort, w_saturation: relative weights of the normalised
             terms; w_divergence: per failed case.
         effort_limit: mean effort <= effort_limit x the paper's (inf: no limit).
@@ -174,6 +224,12 @@ class ObjectiveConfig:
     objective: str = "robust"
     risk: str = "mean"
     cvar_level: float = 0.9
+    cvar_temperature: float = 0.05
+    failure: str = "margin"
+    reserve: float = 0.3
+    loss_cap: float = 50.0
+    margin_temperature: float = 0.025
+    n_save: int = 201
     w_attitude: float = 1.0
     w_altitude: float = 1.0
     w_effort: float = 0.0
@@ -197,6 +253,28 @@ class ObjectiveConfig:
             raise ValueError(f"unknown risk measure {self.risk!r}; allowed: {', '.join(RISKS)}.")
         if self.dtype not in DTYPES:
             raise ValueError(f"unknown dtype {self.dtype!r}; allowed: {', '.join(DTYPES)}.")
+        if self.failure not in FAILURES:
+            raise ValueError(
+                f"unknown failure treatment {self.failure!r}; allowed: {', '.join(FAILURES)}."
+            )
+        if not (
+            self.cvar_temperature >= 0
+            and self.reserve > 0
+            and self.margin_temperature > 0
+            and self.loss_cap > 0
+        ):
+            raise ValueError(
+                "need cvar_temperature >= 0 and reserve, margin_temperature, loss_cap > 0; got "
+                f"{self.cvar_temperature}, {self.reserve}, {self.margin_temperature}, "
+                f"{self.loss_cap}."
+            )
+        if not self.reserve > 4.0 * self.margin_temperature:
+            raise ValueError(
+                f"need reserve > 4 margin_temperature, got {self.reserve}, "
+                f"{self.margin_temperature}."
+            )
+        if self.n_save < 2:
+            raise ValueError(f"n_save must be >= 2, got {self.n_save}.")
         if not 0.0 <= self.cvar_level < 1.0:
             raise ValueError(f"cvar_level must be in [0, 1), got {self.cvar_level}.")
         for name in (
@@ -233,6 +311,14 @@ class CaseCosts(eqx.Module):
     failed: jax.Array
     missing: jax.Array
     status: jax.Array
+    margin: jax.Array | None = None
+    weight: jax.Array | None = None
+
+    def weights(self) -> jax.Array:
+        """w_i: 1 for a case inside the flight envelope, 0 outside (all 1 without the input)."""
+        if self.weight is None:
+            return jnp.ones_like(self.ise_attitude)
+        return self.weight
 
 
 class Reference(eqx.Module):
@@ -257,6 +343,16 @@ def _finite(x):
     return jnp.where(ok, x, 0.0), ok
 
 
+def envelope_weights(cases) -> jax.Array:
+    """w_i per case: 1 inside the flight envelope, 0 outside (the case inputs'
+    ``envelope_cause``, decided before simulating; all 1 where the cases do not carry it)."""
+    n = int(np.shape(cases.scenario.t1)[0])
+    cause = getattr(cases, "inputs", {}).get("envelope_cause")
+    if cause is None:
+        return jnp.ones((n,))
+    return jnp.where(jnp.reshape(cause, (n,)) == 0, 1.0, 0.0)
+
+
 def case_costs(
     controller: AbstractController, cases, config: ObjectiveConfig, all_devices: bool = True
 ) -> CaseCosts:
@@ -273,6 +369,7 @@ def case_costs(
     n_dev = max(d for d in range(1, len(local) + 1) if d == 1 or n % (GROUP_SIZE * d) == 0)
     unmodeled = getattr(cases, "unmodeled", None)
     digital = unmodeled is not None and unmodeled.digital
+    margin = config.failure == "margin"
     m = simulate_batch(
         controller,
         cases.scenario,
@@ -290,6 +387,7 @@ def case_costs(
         rtol=config.rtol,
         atol=config.atol,
         max_steps=config.max_steps_interval if digital else config.max_steps,
+        n_save=config.n_save if margin else 0,
         devices=local[:n_dev],
     )
     m = jax.tree.map(lambda x: x.astype(float) if jnp.issubdtype(x.dtype, jnp.floating) else x, m)
@@ -301,40 +399,97 @@ def case_costs(
     t0, t1 = cases.scenario.t0, cases.scenario.t1
     t_stop, _ = _finite(m.t_final)
     missing = jax.lax.stop_gradient(jnp.clip((t1 - t_stop) / (t1 - t0), 0.0, 1.0))
-    return CaseCosts(ise_att, ise_alt, effort, sat, failed, missing, m.status)
+    if margin:
+        sm, finite = _finite(smooth_margin(m, temperature=config.margin_temperature))
+        # a run with no finite peak sample failed before its first sample: at the limit
+        sm = jnp.where(finite | ~failed, sm, 0.0)
+    else:
+        sm = jnp.full_like(ise_att, jnp.nan)
+    weight = envelope_weights(cases)
+    return CaseCosts(ise_att, ise_alt, effort, sat, failed, missing, m.status, sm, weight)
+
+
+def _wmean(x, w):
+    """Weighted mean (entries with weight 0 do not enter, even non-finite ones)."""
+    return jnp.sum(jnp.where(w > 0, x, 0.0) * w) / jnp.maximum(jnp.sum(w), 1e-300)
 
 
 def reference_terms(costs: CaseCosts) -> Reference:
-    """The normalising means of ``costs`` (saturation floored at `SATURATION_FLOOR`)."""
+    """The normalising means of ``costs`` over the cases inside the envelope (saturation
+    floored at `SATURATION_FLOOR`)."""
+    w = costs.weights()
     return Reference(
-        jnp.mean(costs.ise_attitude),
-        jnp.mean(costs.ise_altitude),
-        jnp.mean(costs.effort),
-        jnp.maximum(jnp.mean(costs.saturation), SATURATION_FLOOR),
+        _wmean(costs.ise_attitude, w),
+        _wmean(costs.ise_altitude, w),
+        _wmean(costs.effort, w),
+        jnp.maximum(_wmean(costs.saturation, w), SATURATION_FLOOR),
+    )
+
+
+def hinge(m: jax.Array, config: ObjectiveConfig) -> jax.Array:
+    """H(m): the saturated softplus hinge, the failure penalty per unit w_div (module
+    docstring); about 0 for m << -rho, 1 from m = -4 tau on."""
+    tau, rho = config.margin_temperature, config.reserve
+    d = 4.0 * tau
+    return tau * (jax.nn.softplus((m + rho) / tau) - jax.nn.softplus((m + d) / tau)) / (rho - d)
+
+
+def reach(m: jax.Array, config: ObjectiveConfig) -> jax.Array:
+    """S(m) = smoothstep((m + rho) / rho): 0 for m <= -rho, 1 for m >= 0 (C^1)."""
+    x = jnp.clip((m + config.reserve) / config.reserve, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def capped(p: jax.Array, config: ObjectiveConfig) -> jax.Array:
+    """psi(P) = P - kappa softplus((P - K) / kappa), kappa = K / 10: a smooth min(P, K) < K."""
+    kappa = 0.1 * config.loss_cap
+    return p - kappa * jax.nn.softplus((p - config.loss_cap) / kappa)
+
+
+def performance(costs: CaseCosts, ref: Reference, config: ObjectiveConfig) -> jax.Array:
+    """P_i: the weighted sum of the normalised terms per case (as computed, failed or not)."""
+    return (
+        config.w_attitude * costs.ise_attitude / ref.ise_attitude
+        + config.w_altitude * costs.ise_altitude / ref.ise_altitude
+        + config.w_effort * costs.effort / ref.effort
+        + config.w_saturation * costs.saturation / ref.saturation
     )
 
 
 def case_losses(costs: CaseCosts, ref: Reference, config: ObjectiveConfig) -> jax.Array:
     """Per-case normalised loss L_i (module docstring). A failed case's terms (accumulated
     until it failed) carry no gradient: their derivative says nothing about the gains' merit."""
+    failed = costs.failed
+    if config.failure == "margin":
+        k, w = config.loss_cap, config.w_divergence
+        # double where: a failed case's values (and their gradients) never enter the branch
+        # of the surviving cases
+        m = jnp.where(failed, -10.0 * config.reserve, costs.margin)
+        psi = capped(jnp.where(failed, 0.0, performance(costs, ref, config)), config)
+        s = reach(m, config)
+        survive = (1.0 - s) * psi + s * k + w * hinge(m, config)
+        fail = jnp.full_like(survive, k + w)
+        return jnp.where(failed, fail, survive)
 
     def term(x):
-        return jnp.where(costs.failed, jax.lax.stop_gradient(x), x)
+        return jnp.where(failed, jax.lax.stop_gradient(x), x)
 
     return (
         config.w_attitude * term(costs.ise_attitude) / ref.ise_attitude
         + config.w_altitude * term(costs.ise_altitude) / ref.ise_altitude
         + config.w_effort * term(costs.effort) / ref.effort
         + config.w_saturation * term(costs.saturation) / ref.saturation
-        + config.w_divergence * jnp.where(costs.failed, 1.0 + costs.missing, 0.0)
+        + config.w_divergence * jnp.where(failed, 1.0 + costs.missing, 0.0)
     )
 
 
 def limit_ratios(costs: CaseCosts, ref: Reference) -> dict:
-    """Mean effort and saturation relative to their reference scales."""
+    """Mean effort and saturation (cases inside the envelope) relative to their reference
+    scales."""
+    w = costs.weights()
     return {
-        "effort": jnp.mean(costs.effort) / ref.effort,
-        "saturation": jnp.mean(costs.saturation) / ref.saturation,
+        "effort": _wmean(costs.effort, w) / ref.effort,
+        "saturation": _wmean(costs.saturation, w) / ref.saturation,
     }
 
 
@@ -346,19 +501,56 @@ def penalties(costs: CaseCosts, ref: Reference, config: ObjectiveConfig) -> jax.
     return config.penalty * (over_e**2 + over_s**2)
 
 
-def aggregate(losses: jax.Array, config: ObjectiveConfig) -> jax.Array:
-    """Scalar objective from per-case losses: sum (nominal), mean or CVaR (robust)."""
+def smooth_cvar(losses: jax.Array, weights: jax.Array, level: float, beta: float) -> jax.Array:
+    """The smoothed Rockafellar-Uryasev CVaR at ``level`` (module docstring) of ``losses``
+    with case weights (0: left out), the level t minimised exactly (bisection, 80 halvings of
+    a bracket that holds t*; t* enters with no gradient, the envelope theorem)."""
+    w = weights / jnp.sum(weights)
+    x = jnp.where(weights > 0, losses, 0.0)
+    xs = jax.lax.stop_gradient(x)
+    inside = weights > 0
+    lo = jnp.min(jnp.where(inside, xs, jnp.inf)) - 40.0 * beta
+    hi = jnp.max(jnp.where(inside, xs, -jnp.inf)) + beta * (40.0 - math.log(1.0 - level))
+
+    def tail(t):  # weighted fraction above t, decreasing in t
+        return jnp.sum(w * jax.nn.sigmoid((xs - t) / beta))
+
+    def halve(_, bracket):
+        a, b = bracket
+        c = 0.5 * (a + b)
+        above = tail(c) > 1.0 - level
+        return jnp.where(above, c, a), jnp.where(above, b, c)
+
+    a, b = jax.lax.fori_loop(0, 80, halve, (lo, hi))
+    t = jax.lax.stop_gradient(0.5 * (a + b))
+    return t + jnp.sum(w * beta * jax.nn.softplus((x - t) / beta)) / (1.0 - level)
+
+
+def aggregate(
+    losses: jax.Array, config: ObjectiveConfig, weights: jax.Array | None = None
+) -> jax.Array:
+    """Scalar objective from per-case losses: sum (nominal), mean or CVaR (robust), over the
+    cases with weight 1 (``weights``: `envelope_weights`; None: every case)."""
+    w = jnp.ones_like(losses) if weights is None else weights
+    x = jnp.where(w > 0, losses, 0.0)
     if config.objective == "nominal":
-        return jnp.sum(losses)
-    if config.risk == "mean":
-        return jnp.mean(losses)
-    n = losses.shape[0]
-    k = max(1, math.ceil((1.0 - config.cvar_level) * n))
-    return jnp.mean(jax.lax.top_k(losses, k)[0])
+        return jnp.sum(x * w)
+    if config.risk == "mean" or config.cvar_level == 0.0:
+        return _wmean(x, w)
+    if config.cvar_temperature > 0:
+        return smooth_cvar(x, w, config.cvar_level, config.cvar_temperature)
+    if weights is None:
+        k = max(1, math.ceil((1.0 - config.cvar_level) * int(losses.shape[0])))
+        return jnp.mean(jax.lax.top_k(x, k)[0])
+    # cases left out rank last and are not counted
+    k = jnp.maximum(1, jnp.ceil((1.0 - config.cvar_level) * jnp.sum(w > 0)))
+    ranked = jnp.sort(jnp.where(w > 0, x, -jnp.inf))[::-1]
+    return jnp.sum(jnp.where(jnp.arange(ranked.shape[0]) < k, ranked, 0.0)) / k
 
 
 def objective_of_costs(costs: CaseCosts, ref: Reference, config: ObjectiveConfig) -> jax.Array:
-    return aggregate(case_losses(costs, ref, config), config) + penalties(costs, ref, config)
+    losses = case_losses(costs, ref, config)
+    return aggregate(losses, config, costs.weights()) + penalties(costs, ref, config)
 
 
 def objective(params: dict, space: GainSpace, cases, config: ObjectiveConfig, ref: Reference):
@@ -371,7 +563,7 @@ def objective(params: dict, space: GainSpace, cases, config: ObjectiveConfig, re
 def limit_report(costs: CaseCosts, ref: Reference, config: ObjectiveConfig, ref_failed: int):
     """Which limits are active (at or beyond their bound, 1e-3 relative) at these costs."""
     r = {k: float(v) for k, v in limit_ratios(costs, ref).items()}
-    failed = int(np.sum(np.asarray(costs.failed)))
+    failed = int(np.sum(np.asarray(costs.failed) & (np.asarray(costs.weights()) > 0)))
     return {
         "effort_ratio": r["effort"],
         "effort_limit": config.effort_limit,
@@ -400,6 +592,9 @@ def tile_cases(cases, copies: int):
     if getattr(cases, "unmodeled", None) is not None:
         fields.append(cases.unmodeled)
         getters.append(lambda c: c.unmodeled)
+    if jax.tree.leaves(getattr(cases, "inputs", {})):
+        fields.append(cases.inputs)
+        getters.append(lambda c: c.inputs)
     return eqx.tree_at(lambda c: [g(c) for g in getters], cases, [pick(f) for f in fields])
 
 

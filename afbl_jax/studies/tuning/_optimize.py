@@ -1,10 +1,15 @@
 """The tuning loop: L-BFGS (default), Adam or CMA-ES over the unconstrained gain vector z
 (`GainSpace.log_gains`), a wall-time budget, checkpoints and exact resume.
 
-- ``lbfgs``: `optax.lbfgs` with its zoom line search (strong Wolfe conditions) on the fixed
-  training set; the next iteration starts from the objective and gradient the line search left
-  in the state (as `optax.value_and_grad_from_state` does), so an accepted first trial costs one
-  value-and-gradient per iteration.
+- ``lbfgs``: `optax.lbfgs` with a backtracking Armijo line search
+  (`optax.scale_by_backtracking_linesearch`: sufficient decrease f(z + a d) <= f(z) +
+  1e-4 a g.d, the step a times `LS_DECREASE` after each rejected trial, at most
+  ``linesearch_steps`` trials) on the fixed training set. When no trial decreases enough the
+  iterate stays (the objective never goes up) and the next search starts below the last
+  trial step. A trial is a forward evaluation of the objective; after
+  the step one value-and-gradient at the new point serves as the next iteration's start, so an
+  iteration costs at most ``linesearch_steps`` + 1 forward passes, one of them with its
+  gradient (recorded per iteration as ``evaluations``).
 - ``adam``: `optax.adam` with a cosine or constant schedule, global-norm clipping and
   `optax.zero_nans`.
 - ``cmaes``: `cmaes.CMA` (the ``cmaes`` package), the whole population evaluated in ONE
@@ -14,10 +19,10 @@
   cluster's workers (as many groups as task slots; a group boundary never splits an ensemble
   group of cases), the same numbers as the one call.
 
-Every method stops after ``steps`` iterations (generations for CMA-ES) or before an iteration
-that would end past ``time_budget`` seconds (estimated from the last iteration). The clock
-starts after compiling one iteration (`Tuner.warmup`, timed separately as ``compile_s``) and
-continues across a resume. The history has
+Every method stops after ``steps`` iterations (generations for CMA-ES) or at the time budget
+(`Tuner.run`: counted after compiling one iteration, or from a given start with compilation
+included and an unfinished iteration abandoned at the deadline); the clock continues across a
+resume. The history has
 one row per iteration: the objective at the gains held after it, the wall time, the gains.
 """
 
@@ -29,6 +34,7 @@ import functools
 import json
 import math
 import pickle
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -61,6 +67,8 @@ CHECKPOINT_ARRAYS = "checkpoint.eqx"
 CHECKPOINT_CMA = "checkpoint_cma.pkl"
 CHECKPOINT_STATE = "checkpoint.json"
 CHANNELS = ("phi", "theta", "psi", "z")
+LS_DECREASE = 0.3
+"""Factor of the L-BFGS trial step after each rejected trial."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +82,9 @@ class TuneConfig:
         seed: seed of the training cases (and of CMA-ES's sampling).
         steps: iterations (L-BFGS / Adam steps, CMA-ES generations).
         method: "lbfgs" (default), "adam" or "cmaes".
-        time_budget: wall-time budget [s] of the optimisation (None: no budget).
+        linesearch_steps: L-BFGS: most trial steps (forward evaluations) per iteration.
+        time_budget: wall-time budget [s] (None: no budget): of the iterations, or from a
+            given start (`Tuner.run`'s ``started``: compilation included).
         learning_rate, schedule, clip_norm: Adam (peak step in z units; "cosine" decays to
             10 % over ``steps``).
         sigma, population: CMA-ES initial step size (z units) and population (None: the
@@ -90,6 +100,7 @@ class TuneConfig:
     seed: int = 0
     steps: int = 100
     method: str = "lbfgs"
+    linesearch_steps: int = 4
     time_budget: float | None = None
     learning_rate: float = 0.05
     schedule: str = "cosine"
@@ -108,6 +119,8 @@ class TuneConfig:
             raise ValueError(
                 f"unknown schedule {self.schedule!r}; allowed: {', '.join(SCHEDULES)}."
             )
+        if self.linesearch_steps < 1:
+            raise ValueError(f"linesearch_steps must be >= 1, got {self.linesearch_steps}.")
         if self.steps < 0 or self.n_cases < 1 or self.checkpoint_every < 0:
             raise ValueError(
                 "need steps >= 0, n_cases >= 1, checkpoint_every >= 0; got "
@@ -145,6 +158,8 @@ class TuneConfig:
     def step_key(self) -> TuneConfig:
         """`objective_key` plus the fields of the optax update (method, Adam's schedule)."""
         key = self.objective_key()
+        if self.method == "lbfgs":
+            return dataclasses.replace(key, linesearch_steps=self.linesearch_steps)
         if self.method == "adam":
             return dataclasses.replace(
                 key,
@@ -169,7 +184,11 @@ class TuneConfig:
 def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
     """The optax transformation of a gradient method (L-BFGS, or Adam with guards)."""
     if config.method == "lbfgs":
-        return optax.lbfgs()
+        # the trial counter starts at 0 and the loop runs while it is <= the maximum
+        search = optax.scale_by_backtracking_linesearch(
+            max_backtracking_steps=config.linesearch_steps - 1, decrease_factor=LS_DECREASE
+        )
+        return optax.lbfgs(linesearch=search)
     if config.schedule == "cosine":
         lr = optax.cosine_decay_schedule(config.learning_rate, max(config.steps, 1), alpha=0.1)
     else:
@@ -190,6 +209,7 @@ class TuneResult:
     reference: Any = None
     costs: Any = None
     compile_s: float = 0.0
+    stopped: str | None = None
 
     @property
     def initial_loss(self) -> float:
@@ -222,6 +242,8 @@ class Tuner:
         self.executor = executor
         self.executor_record: dict | None = None  # the last run's Dask cluster (None: local)
         self._session = None
+        self._start = None  # L-BFGS: (objective, gradient) at the current z
+        self._estimate = None  # L-BFGS: seconds a next iteration takes at most (compiled)
         self.space = config.space()
         self.cases = (
             cases
@@ -261,6 +283,7 @@ class Tuner:
 
     # -- state ---------------------------------------------------------------------------
     def init(self):
+        self._start = None
         z = self.space.init_z()
         if self.config.method == "cmaes":
             from cmaes import CMA
@@ -308,15 +331,28 @@ class Tuner:
             z = _unflat(state["best"], self.space.names)
             return z, state, state["best_loss"], math.nan, len(xs)
         if cfg.method == "lbfgs":
-            if not np.isfinite(float(optax.tree_utils.tree_get(state, "value"))):
-                (value, _), grad = self.value_and_grad(z)  # first iteration
+            if self._start is None:  # value and gradient at z (first iteration, resume)
+                (value, _), grad = self.value_and_grad(z)
             else:
-                value, grad = lbfgs_value_grad(state)
-            z, state = _lbfgs_step(
-                cfg.objective_key(), z, state, value, grad, self.cases, self.reference
+                value, grad = self._start
+            new_z, new_state = _lbfgs_step(
+                cfg.step_key(), z, state, value, grad, self.cases, self.reference
             )
-            gnorm = optax.tree_utils.tree_norm(grad)
-            return z, state, None, float(gnorm), 1
+            trials = int(optax.tree_utils.tree_get(new_state, "num_linesearch_steps"))
+            gnorm = float(optax.tree_utils.tree_norm(grad))
+            if not float(optax.tree_utils.tree_get(new_state, "decrease_error")) <= 0.0:
+                # no trial decreased enough: stay, and start the next search below the last
+                # trial step (the curvature memory is kept as it was)
+                rate = optax.tree_utils.tree_get(new_state, "learning_rate")
+                state = optax.tree_utils.tree_set(state, learning_rate=rate * LS_DECREASE)
+                return z, state, float(value), gnorm, trials
+            t = time.perf_counter()
+            (new_value, _), new_grad = self.value_and_grad(new_z)
+            jax.block_until_ready(new_grad)
+            # the cost of a next iteration at most: its trials and one value-and-gradient
+            self._estimate = (cfg.linesearch_steps + 1) * (time.perf_counter() - t)
+            self._start = (new_value, new_grad)
+            return new_z, new_state, float(new_value), gnorm, trials + 1
         (value, _), grads = self.value_and_grad(z)
         z, state, gnorm = _adam_step(cfg.step_key(), z, state, grads)
         return z, state, None, float(gnorm), 1
@@ -328,8 +364,7 @@ class Tuner:
         z, state = self.init()
         z, state, *_ = self._iterate(z, copy.deepcopy(state))
         jax.block_until_ready(z)
-        if self.config.method == "lbfgs":
-            float(optax.tree_utils.tree_get(state, "value"))
+        self._start = None
         return time.perf_counter() - t
 
     def run(
@@ -339,29 +374,51 @@ class Tuner:
         progress: bool = True,
         stop_after: int | None = None,
         log=print,
+        started: float | None = None,
+        reserve: float = 0.0,
     ) -> TuneResult:
         """Optimise for ``config.steps`` iterations or until the time budget is spent (or stop
         after ``stop_after`` iterations, for tests of resuming). Checkpoints go to ``out`` every
         ``checkpoint_every`` iterations; ``resume`` continues from ``out``'s checkpoint (same
         config required) with the same result as an uninterrupted run. History row 0 is the
         starting point (the paper's gains), row i the gains after iteration i. The executor's
-        session (a Dask client) is open during the run."""
+        session (a Dask client) is open during the run.
+
+        Time budget (``config.time_budget``): with ``started`` None, the clock starts after
+        compiling one iteration (`warmup`) and the loop stops before an iteration that would
+        end past the budget (estimated from the last one). With ``started`` (a
+        `time.perf_counter` value, e.g. when the command started) the clock runs from then,
+        compilation included: the loop stops once ``started + time_budget - reserve`` has
+        passed or the last iteration's duration exceeds what is left, and an iteration still
+        running at that deadline (the first one compiles) is abandoned. Either way the result
+        holds the best point so far (``stopped`` says why it stopped early). With
+        ``progress``, one line per iteration goes to ``log``."""
         executor = self.executor if self.config.method == "cmaes" else None
         with (executor or LocalExecutor()).session() as session:
             self._session = session
             self.executor_record = None if session.record["kind"] == "local" else session.record
             try:
-                return self._run(out, resume, progress, stop_after, log)
+                return self._run(out, resume, progress, stop_after, log, started, reserve)
             finally:
                 self._session = None
 
-    def _run(self, out, resume, progress, stop_after, log) -> TuneResult:
+    def _run(self, out, resume, progress, stop_after, log, started, reserve) -> TuneResult:
         cfg = self.config
-        compile_s = self.warmup() if cfg.steps > 0 else 0.0
+        budgeted = started is not None and cfg.time_budget is not None
+        if started is None:  # the clock starts after compiling one iteration
+            compile_s = self.warmup() if cfg.steps > 0 else 0.0
+            t_start = None
+        else:  # the clock started with the command: compilation counts
+            compile_s, t_start = math.nan, started
+        deadline = started + cfg.time_budget - reserve if budgeted else None
         z, state = self.init()
-        t_start = time.perf_counter()
+        t_start = time.perf_counter() if t_start is None else t_start
         history: list[dict] = []
         start, offset = 0, 0.0
+
+        def elapsed():
+            return offset + time.perf_counter() - t_start
+
         if resume:
             if out is None:
                 raise ValueError("resume needs the output folder holding the checkpoint.")
@@ -370,43 +427,56 @@ class Tuner:
             log(f"resumed from {Path(out) / CHECKPOINT_STATE} at iteration {start}")
         else:
             loss0, costs0 = self.loss_and_costs(z)
-            history.append(self._row(0, z, loss0, 0.0, costs0))
+            history.append(self._row(0, z, loss0, elapsed() if budgeted else 0.0, costs0))
             if cfg.method == "cmaes":  # the starting point is the best seen so far
                 state["best_loss"] = float(loss0)
-
-        def elapsed():
-            return offset + time.perf_counter() - t_start
+        best = (history[-1]["loss"], z, len(history) - 1)
 
         end = cfg.steps if stop_after is None else min(cfg.steps, start + stop_after)
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=cfg.steps, initial=start, desc=f"tune ({cfg.method})", unit="it")
+        if progress and start < end:
+            log(
+                f"tune ({cfg.method}): {end - start} iterations"
+                + (f", time budget {cfg.time_budget:g} s" if cfg.time_budget else "")
+                + (" (the first one compiles)" if budgeted and start == 0 else "")
+            )
         last = 0.0
+        stopped, abandoned = None, False
         for it in range(start, end):
-            if cfg.time_budget is not None and elapsed() + last > cfg.time_budget:
-                log(
-                    f"time budget {cfg.time_budget:g} s: stopped after {it} iterations "
-                    f"({elapsed():.1f} s)"
-                )
+            if deadline is not None:
+                left = deadline - time.perf_counter()
+                if left <= 0 or (last > 0 and last > left):
+                    stopped = f"stopped before iteration {it + 1}: {max(left, 0.0):.1f} s left"
+                    break
+            elif cfg.time_budget is not None and elapsed() + last > cfg.time_budget:
+                stopped = f"stopped after {it} iterations ({elapsed():.1f} s)"
                 break
             t_it = time.perf_counter()
-            z, state, loss, gnorm, nev = self._iterate(z, state)
+            if deadline is None:
+                outcome = self._iterate(z, state)
+            else:
+                outcome = _within(lambda z=z, state=state: self._iterate(z, state), deadline)
+                if outcome is None:
+                    stopped = f"iteration {it + 1} did not finish before the deadline"
+                    abandoned = True
+                    break
+            z, state, loss, gnorm, nev = outcome
             costs = None
             if loss is None:
-                if cfg.method == "lbfgs":
-                    loss = float(lbfgs_value_grad(state)[0])
-                else:
-                    loss, costs = self.loss_and_costs(z)
-            last = time.perf_counter() - t_it
+                loss, costs = self.loss_and_costs(z)
+            took = time.perf_counter() - t_it
+            # the estimate of the next iteration (the first one's time includes compiling)
+            last = took if self._estimate is None else min(took, self._estimate)
             row = self._row(it + 1, z, loss, elapsed(), costs, gnorm, nev)
             history.append(row)
+            if row["loss"] < best[0]:
+                best = (row["loss"], z, it + 1)
             if not math.isfinite(row["loss"]):
                 log(f"iteration {it + 1}: non-finite loss {row['loss']}")
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{row['loss']:.4e}")
+            if progress:
+                log(
+                    f"iteration {it + 1}/{end}: objective {row['loss']:.5e}, "
+                    f"{nev} evaluations, {took:.1f} s (total {row['time_s']:.1f} s)"
+                )
             done = it + 1
             if (
                 out is not None
@@ -414,11 +484,21 @@ class Tuner:
                 and (done % cfg.checkpoint_every == 0 or done == end)
             ):
                 save_checkpoint(out, cfg, done, z, state, history)
-        if bar is not None:
-            bar.close()
+        if stopped is not None:
+            log(
+                f"time budget {cfg.time_budget:g} s: {stopped}; keeping the best point so far "
+                f"(iteration {best[2]}, objective {best[0]:.5e})"
+            )
+            # (an abandoned iteration may still change a CMA-ES state in place)
+            if out is not None and cfg.checkpoint_every and len(history) > 1 and not abandoned:
+                save_checkpoint(out, cfg, history[-1]["step"], z, state, history)
+        z = best[1]
         params = self.space.log_gains(z)
         loss, costs = self.loss_and_costs(z)
-        history[-1].update(self._row(history[-1]["step"], z, loss, history[-1]["time_s"], costs))
+        final = self._row(history[-1]["step"], z, loss, history[-1]["time_s"], costs)
+        final["evaluations"] = history[-1]["evaluations"]
+        final["grad_norm"] = history[-1]["grad_norm"]
+        history[-1].update(final)
         return TuneResult(
             params,
             self.space.controller_of(params),
@@ -427,7 +507,41 @@ class Tuner:
             self.reference,
             costs,
             compile_s,
+            stopped,
         )
+
+
+_ABANDONED: list[threading.Thread] = []
+
+
+def abandoned_work() -> bool:
+    """Whether a computation abandoned at a deadline (`_within`) is still running: the process
+    must then end with ``os._exit`` (a daemon thread inside XLA aborts the interpreter's
+    normal shutdown)."""
+    return any(t.is_alive() for t in _ABANDONED)
+
+
+def _within(fn, deadline: float):
+    """``fn()`` run in a daemon thread; its result, or None when it has not finished by
+    ``deadline`` (`time.perf_counter` seconds; the thread is abandoned and ends with the
+    process)."""
+    box: dict = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # re-raised in the caller
+            box["error"] = e
+
+    worker = threading.Thread(target=target, daemon=True)
+    worker.start()
+    worker.join(max(deadline - time.perf_counter(), 0.0))
+    if worker.is_alive():
+        _ABANDONED.append(worker)
+        return None
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
 
 
 def _objective_z(z, config: TuneConfig, cases, ref):
@@ -457,8 +571,8 @@ def _adam_step(config: TuneConfig, z, opt_state, grads):
 
 @eqx.filter_jit
 def _lbfgs_step(config: TuneConfig, z, opt_state, value, grad, cases, ref):
-    """One L-BFGS step with the zoom line search from (value, grad) at z; the line search
-    leaves the objective and gradient at the new z in the state (`lbfgs_value_grad`)."""
+    """One L-BFGS step with the backtracking line search from (value, grad) at z (the trials
+    are forward evaluations of the objective)."""
 
     def value_fn(x):
         return _objective_z(x, config, cases, ref)[0]
@@ -467,11 +581,6 @@ def _lbfgs_step(config: TuneConfig, z, opt_state, value, grad, cases, ref):
         grad, opt_state, z, value=value, grad=grad, value_fn=value_fn
     )
     return optax.apply_updates(z, updates), opt_state
-
-
-def lbfgs_value_grad(state):
-    """(objective, gradient) at the current iterate, as L-BFGS's line search left them."""
-    return optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad")
 
 
 def population_losses(config: TuneConfig, cases, ref, zs) -> np.ndarray:

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
 from ._objective import ObjectiveConfig, case_costs, limit_report
-from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult
+from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult, _within
 
 HELDOUT_CASES = 1024
 """Default number of fresh held-out cases."""
@@ -37,11 +38,11 @@ HELDOUT_METRICS = ("ise", "ise_attitude", "ise_altitude", "effort", "saturation"
 class TuningReport:
     """Everything `run_tuning` produced (also written to the output folder)."""
 
-    result: TuneResult
+    result: TuneResult | None
     paper: AbstractController
     tuned: AbstractController
-    heldout: dict
-    canonical: dict
+    heldout: dict | None
+    canonical: dict | None
     text: str
     limits: dict | None = None
 
@@ -189,6 +190,25 @@ def write_history_csv(history: list[dict], path: Path) -> None:
         writer.writerows(history)
 
 
+def _out_of_time(config: TuneConfig, out: Path, started: float, resume: bool, log):
+    """The outputs of a run whose budget ended before the objective was ready: the starting
+    point (the paper's gains) in gains.json, no history, evaluation.txt saying so."""
+    out.mkdir(parents=True, exist_ok=True)
+    paper = make_controller(config.controller)
+    if not resume:
+        save_gains(paper, out / "gains.json")
+    text = (
+        f"Not tuned: the time budget of {config.time_budget:g} s ended before the objective "
+        f"was compiled and evaluated ({time.perf_counter() - started:.1f} s); gains.json holds "
+        "the starting point (the paper's gains)."
+    )
+    log(text)
+    (out / "evaluation.txt").write_text(text + "\n")
+    meta = run_metadata({**config.to_dict(), "resume": resume})
+    (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return TuningReport(None, paper, paper, None, None, text, None)
+
+
 def run_tuning(
     config: TuneConfig,
     out: str | Path,
@@ -201,9 +221,20 @@ def run_tuning(
     log=print,
     distribution=None,
     executor: Executor | None = None,
+    started: float | None = None,
 ) -> TuningReport:
     """Tune, then evaluate paper vs tuned gains and write every output file to ``out``.
-    ``executor``: where CMA-ES populations are evaluated (`Tuner`; None: this process)."""
+    ``executor``: where CMA-ES populations are evaluated (`Tuner`; None: this process).
+
+    ``config.time_budget`` bounds the whole call, from ``started`` (`time.perf_counter`; None:
+    the call's start): sampling, compilation, iterations (`Tuner.run` with ``started``) and the
+    evaluation. The iterations stop early enough to leave an estimate of the evaluation's time
+    (twice the first objective evaluation's, compilation included); the gains and history are
+    written when they stop; an evaluation still running at the deadline is abandoned and
+    evaluation.txt says so."""
+    t_call = time.perf_counter()
+    started = t_call if started is None else started
+    budget = config.time_budget
     out = Path(out)
     if resume and not (out / CHECKPOINT_STATE).exists():
         raise ValueError(f"no checkpoint in {out} ({CHECKPOINT_STATE} missing).")
@@ -211,9 +242,31 @@ def run_tuning(
     if heldout_seed == config.seed and config.objective.objective == "robust":
         raise ValueError("the held-out seed must differ from the training seed.")
     n_heldout = HELDOUT_CASES if heldout_cases is None else int(heldout_cases)
-    tuner = Tuner(config, distribution=distribution, executor=executor)
+    if progress:
+        log(
+            f"sampling the training cases and compiling the objective (first call) ... "
+            f"[{time.perf_counter() - started:.1f} s]"
+        )
+    t_init = time.perf_counter()
+
+    def make_tuner():
+        return Tuner(config, distribution=distribution, executor=executor)
+
+    tuner = make_tuner() if budget is None else _within(make_tuner, started + budget)
+    t_init = time.perf_counter() - t_init
+    if tuner is None:
+        return _out_of_time(config, out, started, resume, log)
+    if progress:
+        log(f"objective at the paper's gains ready in {t_init:.1f} s")
     # a Dask scheduler that does not answer raises here, before anything is written
-    result = tuner.run(out, resume=resume, progress=progress, log=log)
+    result = tuner.run(
+        out,
+        resume=resume,
+        progress=progress,
+        log=log,
+        started=started if budget is not None else None,
+        reserve=2.0 * t_init,
+    )
     out.mkdir(parents=True, exist_ok=True)
     paper, tuned = make_controller(config.controller), result.controller
     save_gains(tuned, out / "gains.json")
@@ -222,21 +275,44 @@ def run_tuning(
         f"objective {result.initial_loss:.5e} (paper gains) -> {result.final_loss:.5e} "
         f"(tuned), {len(result.history) - 1} iterations of {config.method}, "
         f"{result.history[-1]['time_s']:.1f} s"
+        + (f"; stopped early: {result.stopped}" if result.stopped else "")
     )
     limits = limit_report(
         result.costs,
         result.reference,
         config.objective,
-        int(np.sum(np.asarray(tuner.reference_costs.failed))),
+        int(
+            np.sum(
+                np.asarray(tuner.reference_costs.failed)
+                & (np.asarray(tuner.reference_costs.weights()) > 0)
+            )
+        ),
     )
     on_box = tuner.space.on_box(result.params)
     cases = training_cases(
         n_heldout, heldout_seed, thrust_to_weight=config.thrust_to_weight, distribution=distribution
     )
     controllers = {"paper": paper, "tuned": tuned}
-    heldout = evaluate_heldout(controllers, cases, config.objective)
-    rep, canonical, omega_max = evaluate_canonical(controllers, config.thrust_to_weight)
-    text = format_report(heldout, canonical, omega_max, heldout_seed, config, limits, on_box)
+
+    def evaluate():
+        heldout = evaluate_heldout(controllers, cases, config.objective)
+        return heldout, *evaluate_canonical(controllers, config.thrust_to_weight)
+
+    if progress:
+        log(f"evaluating paper and tuned gains on {n_heldout} held-out cases ...")
+    if budget is None:
+        evaluated = evaluate()
+    else:
+        evaluated = _within(evaluate, started + budget)
+    if evaluated is None:
+        heldout, rep, canonical, omega_max = None, None, None, None
+        text = (
+            f"Held-out evaluation not done: the time budget of {budget:g} s was spent before it "
+            f"finished (gains.json and history.csv hold the tuned gains)."
+        )
+    else:
+        heldout, rep, canonical, omega_max = evaluated
+        text = format_report(heldout, canonical, omega_max, heldout_seed, config, limits, on_box)
     log(text)
     (out / "evaluation.txt").write_text(text + "\n")
     meta = run_metadata(
@@ -254,6 +330,7 @@ def run_tuning(
         "tuned_gains": gains_to_dict(tuned),
         "initial_loss": result.initial_loss,
         "final_loss": result.final_loss,
+        "stopped": result.stopped,
         "limits": limits,
         "gains_on_box": on_box,
         "heldout": heldout,
@@ -267,5 +344,6 @@ def run_tuning(
         from ...plotting.tuning import plot_before_after, plot_convergence
 
         plot_convergence(result.history, config, out / "convergence.png")
-        plot_before_after(rep.runs, omega_max, out / "before_after.png")
+        if rep is not None:
+            plot_before_after(rep.runs, omega_max, out / "before_after.png")
     return TuningReport(result, paper, tuned, heldout, canonical, text, limits)
