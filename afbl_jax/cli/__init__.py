@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
 def _end(rc: int) -> int:
     """``rc``, or end the process with it at once when a command abandoned a computation at
     its time budget (still running in a thread: the interpreter's shutdown would abort)."""
-    tuning = sys.modules.get("afbl_jax.studies.tuning._optimize")
+    tuning = sys.modules.get("afbl_jax.studies.tuning")
     if tuning is not None and tuning.abandoned_work():
         sys.stdout.flush()
         sys.stderr.flush()

@@ -28,6 +28,7 @@ from ._optimize import METHODS as METHODS
 from ._optimize import TuneConfig as TuneConfig
 from ._optimize import Tuner as Tuner
 from ._optimize import TuneResult as TuneResult
+from ._optimize import abandoned_work as abandoned_work
 from ._optimize import make_optimizer as make_optimizer
 from ._optimize import tune as tune
 from ._study import TuningReport as TuningReport
