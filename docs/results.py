@@ -55,10 +55,12 @@ BLOCK = re.compile(
 def git_revision() -> str:
     """HEAD of this repository, with ``-dirty`` when tracked files other than the recorded
     results (docs/results/, docs/figures/: what recording writes) are modified."""
+    if os.environ.get("AFBL_GIT_REVISION"):
+        # a copy of the working tree on another machine (whose git folder, if any, need not be
+        # the tree's): the revision it was copied from, as the caller states it
+        return os.environ["AFBL_GIT_REVISION"]
     if not (ROOT / ".git").exists():
-        # a copy of the working tree without its history (a remote machine): the revision it
-        # was copied from, as the caller states it
-        return os.environ.get("AFBL_GIT_REVISION", "unknown")
+        return "unknown"
     sha = subprocess.run(
         ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
     ).stdout.strip()
