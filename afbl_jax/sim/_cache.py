@@ -25,12 +25,14 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
     loads them instead of compiling them again.
 
     ``path`` None: ``$AFBL_COMPILATION_CACHE``, else `default_cache_dir`. The ``afbl`` command
-    calls this at start-up. Only programs that took at least JAX's threshold to compile (1 s by
-    default, ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``) are written, a few hundred kB
-    each; nothing is evicted, so delete the folder to clear it. Programs that call back into
-    Python are never cached, by JAX's rule: `simulate`'s are not (diffrax checks its save
-    times with a host callback). A cached program is the same executable, so the numbers are
-    bitwise the same as after compiling.
+    calls this at start-up. Every program is written, however fast it compiled (a study
+    compiles over a hundred programs, most of them in well under JAX's default threshold of
+    1 s, which together take longer to compile than to load), unless
+    ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` sets a threshold; entries are a few
+    hundred kB at most, nothing is evicted, so delete the folder to clear it. Programs that
+    call back into Python are never cached, by JAX's rule: `simulate`'s are not (diffrax
+    checks its save times with a host callback). A cached program is the same executable, so
+    the numbers are bitwise the same as after compiling.
 
     Does nothing and returns None when ``$AFBL_COMPILATION_CACHE`` is ``off`` (or ``0``,
     ``none``, ``false``, ``no``) and ``path`` is None, or when JAX already has a cache folder
@@ -51,4 +53,6 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
     folder = Path(path).expanduser()
     folder.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder

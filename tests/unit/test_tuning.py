@@ -181,9 +181,12 @@ def test_time_budget_is_honoured(tuners):
     cfg = dataclasses.replace(tuner.config, steps=1000, time_budget=budget)
     res = Tuner(cfg, cases=tuner.cases).run(progress=False, log=lambda *a: None)
     assert 1 <= len(res.history) - 1 < 1000
-    # stops before an iteration that would end past the budget (estimated from the last one;
-    # 50 % slack for timing noise on a shared machine)
-    assert res.history[-1]["time_s"] <= budget + 0.5 * t_iter
+    times = [h["time_s"] for h in res.history]
+    # no iteration starts once the budget is spent; the last one was started because the
+    # estimate (the iteration before) fitted in what was left, so it overruns the budget by
+    # no more than its excess over that estimate (slack for timing noise on a shared machine)
+    assert times[-2] <= budget
+    assert times[-1] <= budget + 2.0 * t_iter
 
 
 def test_objective_is_normalised_by_the_paper_gains(tuners):
