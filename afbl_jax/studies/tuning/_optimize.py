@@ -454,7 +454,9 @@ class Tuner:
             if deadline is None:
                 outcome = self._iterate(z, state)
             else:
-                outcome = _within(lambda z=z, state=state: self._iterate(z, state), deadline)
+                outcome = within_deadline(
+                    lambda z=z, state=state: self._iterate(z, state), deadline
+                )
                 if outcome is None:
                     stopped = f"iteration {it + 1} did not finish before the deadline"
                     abandoned = True
@@ -515,13 +517,13 @@ _ABANDONED: list[threading.Thread] = []
 
 
 def abandoned_work() -> bool:
-    """Whether a computation abandoned at a deadline (`_within`) is still running: the process
-    must then end with ``os._exit`` (a daemon thread inside XLA aborts the interpreter's
-    normal shutdown)."""
+    """Whether a computation abandoned at a deadline (`within_deadline`) is still running: the
+    process must then end with ``os._exit`` (a daemon thread inside XLA aborts the
+    interpreter's normal shutdown)."""
     return any(t.is_alive() for t in _ABANDONED)
 
 
-def _within(fn, deadline: float):
+def within_deadline(fn, deadline: float):
     """``fn()`` run in a daemon thread; its result, or None when it has not finished by
     ``deadline`` (`time.perf_counter` seconds; the thread is abandoned and ends with the
     process)."""

@@ -23,7 +23,7 @@ from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
 from ._objective import ObjectiveConfig, case_costs, limit_report
-from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult, _within
+from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult, within_deadline
 
 HELDOUT_CASES = 1024
 """Default number of fresh held-out cases."""
@@ -252,7 +252,7 @@ def run_tuning(
     def make_tuner():
         return Tuner(config, distribution=distribution, executor=executor)
 
-    tuner = make_tuner() if budget is None else _within(make_tuner, started + budget)
+    tuner = make_tuner() if budget is None else within_deadline(make_tuner, started + budget)
     t_init = time.perf_counter() - t_init
     if tuner is None:
         return _out_of_time(config, out, started, resume, log)
@@ -303,7 +303,7 @@ def run_tuning(
     if budget is None:
         evaluated = evaluate()
     else:
-        evaluated = _within(evaluate, started + budget)
+        evaluated = within_deadline(evaluate, started + budget)
     if evaluated is None:
         heldout, rep, canonical, omega_max = None, None, None, None
         text = (
