@@ -153,6 +153,13 @@ def add_tuning_args(p) -> None:
         default=64,
         help="solver steps per sample interval (digital control; gradient memory grows with it)",
     )
+    p.add_argument(
+        "--gradient-chunk",
+        type=int,
+        default=32,
+        help="most cases one reverse pass differentiates at a time (a multiple of 4): the "
+        "gradient's memory is bounded by the chunk, not the training set",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
 
 
@@ -203,6 +210,7 @@ def check_tuning_args(args) -> None:
             reserve=args.reserve,
             loss_cap=args.loss_cap,
             margin_temperature=args.margin_temperature,
+            gradient_chunk=args.gradient_chunk,
         )
     except ValueError as e:
         raise UsageError(str(e)) from None
@@ -237,6 +245,7 @@ def config_from_args(args, seed_value: int = 0):
         atol=args.atol,
         max_steps=args.max_steps,
         max_steps_interval=args.max_steps_interval,
+        gradient_chunk=args.gradient_chunk,
     )
     return TuneConfig(
         controller=args.controller,

@@ -295,13 +295,7 @@ def _numpy_rhs(t, y, mass_factor, torque, force_z, gamma, k, lam):
 
 def scipy_loop(draws: np.ndarray, rtol: float = 1e-6, atol: float = 1e-8) -> np.ndarray:
     """(n, 2) ISE (attitude, altitude) of each case by `solve_ivp` RK45 with a NumPy RHS."""
-    try:
-        from scipy.integrate import solve_ivp
-    except ImportError:
-        raise ValueError(
-            "the scipy_rk45_loop baseline needs scipy (pip install scipy, or "
-            "leave it out of --strategies)."
-        ) from None
+    from scipy.integrate import solve_ivp
 
     ctrl = AFBL()
     gamma, k, lam = (np.asarray(getattr(ctrl, g)) for g in ("gamma", "k", "lam"))
@@ -529,13 +523,6 @@ def measure_scipy_montecarlo_cases(batch, ref: np.ndarray) -> dict:
     the NumPy closed loop (`afbl_jax.studies.numpy_loop`) of each case of ``batch`` (AFBL), one
     after the other on one core; accuracy against ``ref`` (the x64 reference of the same
     cases)."""
-    try:
-        import scipy.integrate  # noqa: F401
-    except ImportError:
-        raise ValueError(
-            f"the {MONTECARLO_SCIPY_ROW} baseline needs scipy (pip install scipy, or leave it "
-            "out of --strategies)."
-        ) from None
     from .numpy_loop import cases_from_batch
 
     rss0 = _rss_mb()

@@ -539,7 +539,7 @@ def test_compile_clock_counts_overlapping_spans_once():
         "/jax/core/compile/backend_compile_duration",
     )
     for event, a, b in [(trace, 0.0, 2.0), (lower, 1.0, 3.0), (backend, 5.0, 6.0), ("/x", 7, 9)]:
-        clock._span(event, a, b)
+        clock.record_span(event, a, b)
     assert clock.seconds == pytest.approx(4.0) and clock.programs == 1
     with clock.measure():  # a real compilation inside adds its span
         jax.jit(lambda x: jnp.sin(x) * 3.0 + 1.0)(jnp.arange(7.0)).block_until_ready()

@@ -91,26 +91,29 @@ class CompileClock:
         self.programs = 0
         self.cache_hits = 0
 
-    def _span(self, event: str, start: float, end: float, **kwargs) -> None:
+    def record_span(self, event: str, start: float, end: float, **kwargs) -> None:
+        """Listener of `jax.monitoring` time spans: keeps the span [start, end] [s] of a
+        compilation event (other events are ignored)."""
         if event in _COMPILE_EVENTS:
             with self._lock:
                 self._spans.append((start, end))
                 self.programs += event == _COMPILE_EVENTS[-1]
 
-    def _event(self, event: str, **kwargs) -> None:
+    def record_event(self, event: str, **kwargs) -> None:
+        """Listener of `jax.monitoring` events: counts the persistent-cache hits."""
         if event == "/jax/compilation_cache/cache_hits":
             with self._lock:
                 self.cache_hits += 1
 
     @contextlib.contextmanager
     def measure(self) -> Iterator[CompileClock]:
-        jax.monitoring.register_event_time_span_listener(self._span)
-        jax.monitoring.register_event_listener(self._event)
+        jax.monitoring.register_event_time_span_listener(self.record_span)
+        jax.monitoring.register_event_listener(self.record_event)
         try:
             yield self
         finally:
-            jax.monitoring.unregister_event_time_span_listener(self._span)
-            jax.monitoring.unregister_event_listener(self._event)
+            jax.monitoring.unregister_event_time_span_listener(self.record_span)
+            jax.monitoring.unregister_event_listener(self.record_event)
 
     @property
     def seconds(self) -> float:

@@ -18,6 +18,7 @@ container with the same fields as the Monte-Carlo ``CaseBatch`` (``scenario``, `
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -85,6 +86,23 @@ class TuningCases(eqx.Module):
     @property
     def n_cases(self) -> int:
         return int(np.shape(self.scenario.t1)[0])
+
+    def take(self, indices) -> TuningCases:
+        """The cases at positions ``indices`` (an int array, repeats allowed) of this batch."""
+        idx = np.asarray(indices)
+
+        def pick(tree):
+            return jax.tree.map(lambda x: x[idx], tree)
+
+        model = pick(self.model) if np.ndim(self.model.m) == 1 else self.model
+        return TuningCases(
+            pick(self.scenario),
+            pick(self.vehicle),
+            model,
+            {k: v[idx] for k, v in self.inputs.items()},
+            self.aerodynamics,
+            self.position_loop,
+        )
 
 
 def nominal_vehicle(thrust_to_weight: float | None = DEFAULT_THRUST_TO_WEIGHT) -> QuadrotorParams:

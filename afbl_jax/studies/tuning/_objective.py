@@ -219,6 +219,12 @@ class ObjectiveConfig:
             control; max_steps_interval per sample interval with digital control (reverse mode
             keeps a checkpoint buffer of this many steps for every interval: memory grows with
             it; an interval of 2-5 ms takes a few steps).
+        gradient_chunk: most cases one reverse pass differentiates at a time (a positive
+            multiple of `afbl_jax.montecarlo.GROUP_SIZE`). A gradient over more cases is one
+            forward pass over all of them, the objective's derivative with respect to each
+            case's costs, then the sum of the chunks' vector-Jacobian products: the same
+            gradient, with the reverse pass's memory bounded by the chunk instead of growing
+            with the number of cases.
     """
 
     objective: str = "robust"
@@ -243,6 +249,7 @@ class ObjectiveConfig:
     atol: float = 1e-8
     max_steps: int = 4096
     max_steps_interval: int = 64
+    gradient_chunk: int = 32
 
     def __post_init__(self):
         if self.objective not in OBJECTIVES:
@@ -296,6 +303,11 @@ class ObjectiveConfig:
             self.rtol > 0 and self.atol > 0 and self.max_steps > 0 and self.max_steps_interval > 0
         ):
             raise ValueError("rtol, atol, max_steps and max_steps_interval must be > 0.")
+        if not (self.gradient_chunk > 0 and self.gradient_chunk % GROUP_SIZE == 0):
+            raise ValueError(
+                f"gradient_chunk must be a positive multiple of {GROUP_SIZE} (the ensemble "
+                f"group size), got {self.gradient_chunk}."
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -579,23 +591,7 @@ def limit_report(costs: CaseCosts, ref: Reference, config: ObjectiveConfig, ref_
 
 def tile_cases(cases, copies: int):
     """``cases`` repeated ``copies`` times along the case axis (population evaluation)."""
-    idx = np.tile(np.arange(cases.n_cases), copies)
-
-    def pick(tree):
-        return jax.tree.map(lambda x: x[idx], tree)
-
-    fields = [cases.scenario, cases.vehicle]
-    getters = [lambda c: c.scenario, lambda c: c.vehicle]
-    if jax.tree.leaves(cases.model)[0].ndim > 0:
-        fields.append(cases.model)
-        getters.append(lambda c: c.model)
-    if getattr(cases, "unmodeled", None) is not None:
-        fields.append(cases.unmodeled)
-        getters.append(lambda c: c.unmodeled)
-    if jax.tree.leaves(getattr(cases, "inputs", {})):
-        fields.append(cases.inputs)
-        getters.append(lambda c: c.inputs)
-    return eqx.tree_at(lambda c: [g(c) for g in getters], cases, [pick(f) for f in fields])
+    return cases.take(np.tile(np.arange(cases.n_cases), copies))
 
 
 def cases_for(

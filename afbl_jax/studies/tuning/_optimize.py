@@ -51,6 +51,7 @@ from ..executors import Executor, LocalExecutor
 from ..montecarlo import GROUP_SIZE
 from ._cases import DEFAULT_THRUST_TO_WEIGHT
 from ._objective import (
+    CaseCosts,
     GainSpace,
     ObjectiveConfig,
     case_costs,
@@ -267,8 +268,9 @@ class Tuner:
         return objective_of_costs(costs, self.reference, self.config.objective), costs
 
     def value_and_grad(self, z: dict):
-        """((objective, CaseCosts), d objective / dz)."""
-        return _value_and_grad(self.config.objective_key(), z, self.cases, self.reference)
+        """((objective, CaseCosts), d objective / dz): one reverse pass over the cases, or, over
+        more than ``gradient_chunk`` cases, in chunks (`chunked_value_and_grad`)."""
+        return chunked_value_and_grad(self.config.objective_key(), z, self.cases, self.reference)
 
     def population_losses(self, zs: np.ndarray) -> np.ndarray:
         """Objective of each row of ``zs`` (P, 12), all candidates in one batched call (during
@@ -558,8 +560,63 @@ def _costs(config: TuneConfig, params, cases):
 
 @eqx.filter_jit
 def _value_and_grad(config: TuneConfig, z, cases, ref):
-    """((objective, CaseCosts), d objective / dz); compiled once per config and batch shape."""
+    """((objective, CaseCosts), d objective / dz) in one reverse pass; compiled once per config
+    and batch shape."""
     return jax.value_and_grad(_objective_z, has_aux=True)(z, config, cases, ref)
+
+
+@eqx.filter_jit
+def _costs_cotangent(config: TuneConfig, costs: CaseCosts, ref):
+    """(objective, d objective / d costs) at the per-case ``costs`` (the cotangent of every
+    inexact leaf; None for the others)."""
+    diff, static = eqx.partition(costs, eqx.is_inexact_array)
+
+    def fn(d):
+        return objective_of_costs(eqx.combine(d, static), ref, config.objective)
+
+    return jax.value_and_grad(fn)(diff)
+
+
+@eqx.filter_jit
+def _chunk_grad(config: TuneConfig, z, cases, cotangent):
+    """d/dz of sum_i <cotangent_i, costs_i(z)> over the cases of one chunk (a vector-Jacobian
+    product of the per-case costs; entries with a zero cotangent do not enter)."""
+
+    def fn(z):
+        space = config.space()
+        costs = case_costs(
+            space.controller_of(space.log_gains(z)), cases, config.objective, all_devices=False
+        )
+        diff = eqx.filter(costs, eqx.is_inexact_array)
+        terms = jax.tree.map(lambda c, x: jnp.sum(jnp.where(c != 0, c * x, 0.0)), cotangent, diff)
+        return sum(jax.tree.leaves(terms))
+
+    return jax.grad(fn)(z)
+
+
+def chunked_value_and_grad(config: TuneConfig, z, cases, ref):
+    """((objective, CaseCosts), d objective / dz) with the reverse pass over at most
+    ``config.objective.gradient_chunk`` cases at a time: a forward pass over every case, the
+    cotangent d objective / d costs (the objective is not a sum over cases: CVaR, limits),
+    then the sum over chunks of that cotangent's vector-Jacobian product through each chunk's
+    simulation. The same gradient as one reverse pass (each case's costs depend only on its
+    ensemble group, which a chunk keeps whole). One reverse pass when the cases fit one chunk
+    or their number is not a multiple of `GROUP_SIZE`. The last chunk is filled up with cases
+    from the start, their cotangents zero (one compiled program for every chunk)."""
+    n, chunk = cases.n_cases, config.objective.gradient_chunk
+    if n <= chunk or n % GROUP_SIZE:
+        return _value_and_grad(config, z, cases, ref)
+    space = config.space()
+    costs = _costs(config, space.log_gains(z), cases)
+    value, cotangent = _costs_cotangent(config, costs, ref)
+    grad = None
+    for start in range(0, n, chunk):
+        idx = np.arange(start, start + chunk) % n
+        live = jnp.asarray(np.arange(start, start + chunk) < n)
+        part = jax.tree.map(lambda c: jnp.where(live, c[idx], 0.0), cotangent)
+        g = _chunk_grad(config, z, cases.take(idx), part)
+        grad = g if grad is None else jax.tree.map(jnp.add, grad, g)
+    return (value, costs), grad
 
 
 @eqx.filter_jit
