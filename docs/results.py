@@ -316,8 +316,13 @@ def render_tuning_optimizers(doc: dict) -> str:
         cells = []
         for m in methods:
             v = final[m][seed]
-            unit = "gen." if m == "cmaes" else "it."
-            text = f"{v:.3f} ({len(runs[m][seed]) - 1} {unit})"
+            steps = runs[m][seed][1:]
+            if m == "hybrid":  # CMA-ES generations (no gradient norm), then L-BFGS iterations
+                gens = sum(1 for h in steps if h["grad_norm"] != h["grad_norm"])
+                count = f"{gens} gen. + {len(steps) - gens} it."
+            else:
+                count = f"{len(steps)} {'gen.' if m == 'cmaes' else 'it.'}"
+            text = f"{v:.3f} ({count})"
             cells.append(f"**{text}**" if v == best else text)
         rows.append([f"{seed} ({start['failed']} failed)", f"{start['loss']:.3f}", *cells])
     head = ["seed (cases failed at the start)", "start", *methods]

@@ -45,8 +45,15 @@ def add_tuning_args(p) -> None:
         "--optimizer",
         dest="method",
         default="lbfgs",
-        choices=["lbfgs", "adam", "cmaes"],
-        help="optimiser: L-BFGS with a backtracking line search, Adam, or CMA-ES (gradient-free)",
+        choices=["lbfgs", "adam", "cmaes", "hybrid"],
+        help="optimiser: L-BFGS with a backtracking line search, Adam, CMA-ES (gradient-free), "
+        "or hybrid (CMA-ES generations, then L-BFGS from the best candidate)",
+    )
+    p.add_argument(
+        "--cmaes-generations",
+        type=int,
+        default=5,
+        help="hybrid: CMA-ES generations before L-BFGS takes over",
     )
     p.add_argument(
         "--linesearch-steps",
@@ -192,7 +199,7 @@ def register(sub) -> None:
     p.add_argument(
         "--no-figures", action="store_true", help="skip convergence.png and before_after.png"
     )
-    add_cluster(p, "the CMA-ES populations (--method cmaes)")
+    add_cluster(p, "the CMA-ES populations (--method cmaes or hybrid)")
     p.set_defaults(func=run)
 
 
@@ -216,6 +223,8 @@ def check_tuning_args(args) -> None:
         raise UsageError(str(e)) from None
     if args.linesearch_steps < 1:
         raise UsageError(f"--linesearch-steps must be >= 1, got {args.linesearch_steps}.")
+    if args.cmaes_generations < 1:
+        raise UsageError(f"--cmaes-generations must be >= 1, got {args.cmaes_generations}.")
     if args.cases < 1 or args.steps < 0:
         raise UsageError(f"need --cases >= 1 and --steps >= 0, got {args.cases}, {args.steps}.")
 
@@ -265,6 +274,7 @@ def config_from_args(args, seed_value: int = 0):
         upper=args.upper,
         thrust_to_weight=args.thrust_to_weight or None,
         checkpoint_every=getattr(args, "checkpoint_every", 0),
+        cmaes_generations=args.cmaes_generations,
     )
 
 
@@ -281,11 +291,11 @@ def run(args) -> int:
             "give --heldout-seed."
         )
     executor = executor_from_args(args)
-    if executor is not None and args.method != "cmaes":
+    if executor is not None and args.method not in ("cmaes", "hybrid"):
         raise UsageError(
             f"--scheduler/--workers evaluate CMA-ES populations on a cluster; --method "
             f"{args.method} takes one gradient step at a time in this process: use --method "
-            "cmaes or leave them out."
+            "cmaes or hybrid, or leave them out."
         )
     check_out(args.out)
     config = config_from_args(args)

@@ -23,7 +23,8 @@ def register(sub) -> None:
         "--study",
         required=True,
         choices=["optimizers", "controllers", "gradient-cost"],
-        help="optimizers: L-BFGS / Adam / CMA-ES on the same cases and budget; controllers: "
+        help="optimizers: L-BFGS / Adam / CMA-ES / hybrid on the same cases and budget; "
+        "controllers: "
         "FBL+PID and AFBL each tuned, then evaluated on held-out cases; gradient-cost: "
         "value-and-gradient time against the forward evaluation",
     )
@@ -32,8 +33,8 @@ def register(sub) -> None:
     p.add_argument(
         "--methods",
         nargs="+",
-        default=["lbfgs", "adam", "cmaes"],
-        choices=["lbfgs", "adam", "cmaes"],
+        default=["lbfgs", "adam", "cmaes", "hybrid"],
+        choices=["lbfgs", "adam", "cmaes", "hybrid"],
         help="optimizers study: methods to compare",
     )
     p.add_argument("--heldout-cases", type=int, default=1024, help="controllers: held-out cases")

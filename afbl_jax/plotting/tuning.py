@@ -85,7 +85,7 @@ def plot_loss_vs_time(runs: dict, path: str | Path, title: str = "tuning") -> Pa
     method (colour) and seed (line style); ``runs``: {method: {seed: history rows}}."""
     import matplotlib.pyplot as plt
 
-    colours = {"lbfgs": "tab:blue", "adam": "tab:orange", "cmaes": "tab:green"}
+    colours = {"lbfgs": "tab:blue", "adam": "tab:orange", "cmaes": "tab:green", "hybrid": "tab:red"}
     styles = ("-", "--", ":", "-.")
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for method, per_seed in runs.items():

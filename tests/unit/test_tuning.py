@@ -53,10 +53,16 @@ def cases():
 
 @pytest.fixture(scope="module")
 def tuners(cases):
-    return {
+    out = {
         m: Tuner(dataclasses.replace(CONFIG, method=m, population=8, sigma=0.1), cases=cases)
         for m in ("lbfgs", "adam", "cmaes")
     }
+    # one CMA-ES generation, then two L-BFGS iterations (the programs of the two above)
+    hybrid = dataclasses.replace(
+        CONFIG, method="hybrid", population=8, sigma=0.1, steps=3, cmaes_generations=1
+    )
+    out["hybrid"] = Tuner(hybrid, cases=cases)
+    return out
 
 
 def _perturbed_z(space: GainSpace) -> dict:
@@ -167,12 +173,15 @@ def test_float32_gradient_within_measured_bound(tuners, cases):
     assert np.max(np.abs(g32 - g64)) > 0  # really a float32 solve
 
 
-@pytest.mark.parametrize("method", ["lbfgs", "adam", "cmaes"])
+@pytest.mark.parametrize("method", ["lbfgs", "adam", "cmaes", "hybrid"])
 def test_methods_lower_the_loss_keep_gains_in_box_and_resume_exactly(tuners, method, tmp_path):
     tuner = tuners[method]
     full = tuner.run(tmp_path / "full", progress=False, log=lambda *a: None)
     losses = [h["loss"] for h in full.history]
-    assert len(losses) == CONFIG.steps + 1
+    assert len(losses) == tuner.config.steps + 1
+    if method == "hybrid":  # a generation (no gradient), then L-BFGS iterations
+        assert math.isnan(full.history[1]["grad_norm"])
+        assert all(math.isfinite(h["grad_norm"]) for h in full.history[2:])
     if method != "adam":  # L-BFGS (line search) and CMA-ES (best so far) never go up
         assert all(b <= a + 1e-12 for a, b in zip(losses, losses[1:], strict=False))
         assert losses[-1] < losses[0]
@@ -180,9 +189,11 @@ def test_methods_lower_the_loss_keep_gains_in_box_and_resume_exactly(tuners, met
     for name in tuner.space.names:
         p = np.asarray(full.params[name])
         assert np.all(p >= np.asarray(lo[name]) - 1e-12) and np.all(p <= np.asarray(hi[name]))
-    # interrupted after 1 iteration, resumed: the same iterates and objective values
-    part = tuner.run(tmp_path / "part", progress=False, stop_after=1, log=lambda *a: None)
-    assert len(part.history) == 2
+    # interrupted after 1 iteration (the hybrid: 2, inside its L-BFGS phase), resumed: the
+    # same iterates and objective values
+    stop = 2 if method == "hybrid" else 1
+    part = tuner.run(tmp_path / "part", progress=False, stop_after=stop, log=lambda *a: None)
+    assert len(part.history) == stop + 1
     resumed = Tuner(tuner.config, cases=tuner.cases).run(
         tmp_path / "part", resume=True, progress=False, log=lambda *a: None
     )
@@ -342,6 +353,8 @@ def test_bad_configs_are_rejected():
         ObjectiveConfig(effort_limit=0.0)
     with pytest.raises(ValueError, match="method"):
         TuneConfig(method="sgd")
+    with pytest.raises(ValueError, match="cmaes_generations"):
+        TuneConfig(method="hybrid", cmaes_generations=0)
     with pytest.raises(ValueError, match="time_budget"):
         TuneConfig(time_budget=-1.0)
     with pytest.raises(ValueError, match="thrust_to_weight"):

@@ -1,8 +1,8 @@
 """Comparison studies of the tuner, each one function (and one `afbl tune-compare` command):
 
-- `compare_optimizers`: objective against wall time for L-BFGS, Adam and CMA-ES on the same
-  training cases with the same time budget, for several seeds (each seed: its own training
-  cases and CMA-ES sampling);
+- `compare_optimizers`: objective against wall time for L-BFGS, Adam, CMA-ES and the hybrid
+  (CMA-ES, then L-BFGS) on the same training cases with the same time budget, for several
+  seeds (each seed: its own training cases and CMA-ES sampling);
 - `compare_controllers`: FBL+PID and AFBL tuned with the same objective, method, budget and
   cases, then paper and tuned gains of both on the same fresh held-out cases (noise on);
 - `gradient_cost`: seconds of one objective gradient against one forward evaluation of the
@@ -30,7 +30,7 @@ from ._study import evaluate_heldout, write_history_csv
 
 def compare_optimizers(
     base: TuneConfig,
-    methods=("lbfgs", "adam", "cmaes"),
+    methods=("lbfgs", "adam", "cmaes", "hybrid"),
     seeds=(0, 1, 2),
     out: str | Path | None = None,
     progress: bool = False,

@@ -1,15 +1,16 @@
-"""The tuning loop: L-BFGS (default), Adam or CMA-ES over the unconstrained gain vector z
-(`GainSpace.log_gains`), a wall-time budget, checkpoints and exact resume.
+"""The tuning loop: L-BFGS (default), Adam, CMA-ES or CMA-ES then L-BFGS over the unconstrained
+gain vector z (`GainSpace.log_gains`), a wall-time budget, checkpoints and exact resume.
 
 - ``lbfgs``: `optax.lbfgs` with a backtracking Armijo line search
   (`optax.scale_by_backtracking_linesearch`: sufficient decrease f(z + a d) <= f(z) +
   1e-4 a g.d, the step a times `LS_DECREASE` after each rejected trial, at most
   ``linesearch_steps`` trials) on the fixed training set. When no trial decreases enough the
-  iterate stays (the objective never goes up) and the next search starts below the last
-  trial step. A trial is a forward evaluation of the objective; after
-  the step one value-and-gradient at the new point serves as the next iteration's start, so an
-  iteration costs at most ``linesearch_steps`` + 1 forward passes, one of them with its
-  gradient (recorded per iteration as ``evaluations``).
+  iterate stays (the objective never goes up), the curvature memory is dropped (the next
+  direction is steepest descent: a direction from a poor memory need not descend) and the
+  next search starts below the last trial step. A trial is a forward evaluation of the
+  objective; after the step one value-and-gradient at the new point serves as the next
+  iteration's start, so an iteration costs at most ``linesearch_steps`` + 1 forward passes,
+  one of them with its gradient (recorded per iteration as ``evaluations``).
 - ``adam``: `optax.adam` with a cosine or constant schedule, global-norm clipping and
   `optax.zero_nans`.
 - ``cmaes``: `cmaes.CMA` (the ``cmaes`` package), the whole population evaluated in ONE
@@ -18,6 +19,8 @@
   the population is split into consecutive groups of candidates, one task each on the
   cluster's workers (as many groups as task slots; a group boundary never splits an ensemble
   group of cases), the same numbers as the one call.
+- ``hybrid``: ``cmaes_generations`` CMA-ES generations (global search), then L-BFGS as above
+  from the best candidate seen (local refinement, a fresh curvature memory).
 
 Every method stops after ``steps`` iterations (generations for CMA-ES) or at the time budget
 (`Tuner.run`: counted after compiling one iteration, or from a given start with compilation
@@ -62,7 +65,9 @@ from ._objective import (
     tile_cases,
 )
 
-METHODS = ("lbfgs", "adam", "cmaes")
+METHODS = ("lbfgs", "adam", "cmaes", "hybrid")
+POPULATION_METHODS = ("cmaes", "hybrid")
+"""Methods that evaluate CMA-ES populations (on a cluster with a `DaskExecutor`)."""
 SCHEDULES = ("cosine", "constant")
 CHECKPOINT_ARRAYS = "checkpoint.eqx"
 CHECKPOINT_CMA = "checkpoint_cma.pkl"
@@ -70,6 +75,10 @@ CHECKPOINT_STATE = "checkpoint.json"
 CHANNELS = ("phi", "theta", "psi", "z")
 LS_DECREASE = 0.3
 """Factor of the L-BFGS trial step after each rejected trial."""
+LS_INCREASE = 3.0
+"""Factor of the first trial step of an L-BFGS iteration over the step accepted before (at
+most 1, the quasi-Newton step): after a search that had to shrink, the steps grow back within
+a few iterations."""
 
 
 @dataclass(frozen=True)
@@ -82,7 +91,7 @@ class TuneConfig:
         n_cases: training cases for the robust objective (ignored for nominal: the canonical 4).
         seed: seed of the training cases (and of CMA-ES's sampling).
         steps: iterations (L-BFGS / Adam steps, CMA-ES generations).
-        method: "lbfgs" (default), "adam" or "cmaes".
+        method: "lbfgs" (default), "adam", "cmaes" or "hybrid" (CMA-ES, then L-BFGS).
         linesearch_steps: L-BFGS: most trial steps (forward evaluations) per iteration.
         time_budget: wall-time budget [s] (None: no budget): of the iterations, or from a
             given start (`Tuner.run`'s ``started``: compilation included).
@@ -93,6 +102,7 @@ class TuneConfig:
         lower, upper: gain box as factors of the paper's gains.
         thrust_to_weight: rotor limit (max thrust / nominal weight); None = unlimited.
         checkpoint_every: write a checkpoint every this many iterations (0: never).
+        cmaes_generations: hybrid: CMA-ES generations before L-BFGS takes over.
     """
 
     controller: str = "afbl"
@@ -112,6 +122,7 @@ class TuneConfig:
     upper: float = 10.0
     thrust_to_weight: float | None = DEFAULT_THRUST_TO_WEIGHT
     checkpoint_every: int = 10
+    cmaes_generations: int = 5
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -120,6 +131,8 @@ class TuneConfig:
             raise ValueError(
                 f"unknown schedule {self.schedule!r}; allowed: {', '.join(SCHEDULES)}."
             )
+        if self.cmaes_generations < 1:
+            raise ValueError(f"cmaes_generations must be >= 1, got {self.cmaes_generations}.")
         if self.linesearch_steps < 1:
             raise ValueError(f"linesearch_steps must be >= 1, got {self.linesearch_steps}.")
         if self.steps < 0 or self.n_cases < 1 or self.checkpoint_every < 0:
@@ -159,7 +172,7 @@ class TuneConfig:
     def step_key(self) -> TuneConfig:
         """`objective_key` plus the fields of the optax update (method, Adam's schedule)."""
         key = self.objective_key()
-        if self.method == "lbfgs":
+        if self.method in ("lbfgs", "hybrid"):
             return dataclasses.replace(key, linesearch_steps=self.linesearch_steps)
         if self.method == "adam":
             return dataclasses.replace(
@@ -183,11 +196,14 @@ class TuneConfig:
 
 
 def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
-    """The optax transformation of a gradient method (L-BFGS, or Adam with guards)."""
-    if config.method == "lbfgs":
+    """The optax transformation of a gradient method (L-BFGS, also the hybrid's second phase,
+    or Adam with guards)."""
+    if config.method in ("lbfgs", "hybrid"):
         # the trial counter starts at 0 and the loop runs while it is <= the maximum
         search = optax.scale_by_backtracking_linesearch(
-            max_backtracking_steps=config.linesearch_steps - 1, decrease_factor=LS_DECREASE
+            max_backtracking_steps=config.linesearch_steps - 1,
+            decrease_factor=LS_DECREASE,
+            increase_factor=LS_INCREASE,
         )
         return optax.lbfgs(linesearch=search)
     if config.schedule == "cosine":
@@ -287,7 +303,7 @@ class Tuner:
     def init(self):
         self._start = None
         z = self.space.init_z()
-        if self.config.method == "cmaes":
+        if self.config.method in POPULATION_METHODS:
             from cmaes import CMA
 
             x0 = _flat(z, self.space.names)
@@ -297,7 +313,10 @@ class Tuner:
                 seed=int(self.config.seed % (2**32)),
                 population_size=self.config.population,
             )
-            return z, {"cma": cma, "best": x0, "best_loss": math.inf}
+            state = {"cma": cma, "best": x0, "best_loss": math.inf}
+            if self.config.method == "hybrid":
+                state["lbfgs"] = None  # the L-BFGS state once CMA-ES has handed over
+            return z, state
         return z, self.optimizer.init(z)
 
     def _row(self, step, z, loss, t, costs=None, grad_norm=math.nan, evaluations=0) -> dict:
@@ -321,52 +340,79 @@ class Tuner:
         """One iteration: (new z, new state, loss at new z or None, grad norm, evaluations)."""
         cfg = self.config
         if cfg.method == "cmaes":
-            cma = state["cma"]
-            xs = np.stack([cma.ask() for _ in range(cma.population_size)])
-            losses = self.population_losses(xs)
-            # non-finite objectives rank last
-            ranked = np.where(np.isfinite(losses), losses, np.finfo(float).max)
-            cma.tell(list(zip(xs, ranked, strict=True)))
-            i = int(np.argmin(ranked))
-            if ranked[i] < state["best_loss"]:
-                state["best"], state["best_loss"] = xs[i], float(ranked[i])
-            z = _unflat(state["best"], self.space.names)
-            return z, state, state["best_loss"], math.nan, len(xs)
+            return self._cma_iterate(z, state)
+        if cfg.method == "hybrid":
+            if state["lbfgs"] is None and state["cma"].generation < cfg.cmaes_generations:
+                return self._cma_iterate(z, state)
+            if state["lbfgs"] is None:  # hand over: L-BFGS from the best candidate seen
+                z = _unflat(state["best"], self.space.names)
+                state["lbfgs"] = self.optimizer.init(z)
+                self._start = None
+            z, state["lbfgs"], loss, gnorm, nev = self._lbfgs_iterate(z, state["lbfgs"])
+            return z, state, loss, gnorm, nev
         if cfg.method == "lbfgs":
-            if self._start is None:  # value and gradient at z (first iteration, resume)
-                (value, _), grad = self.value_and_grad(z)
-            else:
-                value, grad = self._start
-            new_z, new_state = _lbfgs_step(
-                cfg.step_key(), z, state, value, grad, self.cases, self.reference
-            )
-            trials = int(optax.tree_utils.tree_get(new_state, "num_linesearch_steps"))
-            gnorm = float(optax.tree_utils.tree_norm(grad))
-            if not float(optax.tree_utils.tree_get(new_state, "decrease_error")) <= 0.0:
-                # no trial decreased enough: stay, and start the next search below the last
-                # trial step (the curvature memory is kept as it was)
-                rate = optax.tree_utils.tree_get(new_state, "learning_rate")
-                state = optax.tree_utils.tree_set(state, learning_rate=rate * LS_DECREASE)
-                return z, state, float(value), gnorm, trials
-            t = time.perf_counter()
-            (new_value, _), new_grad = self.value_and_grad(new_z)
-            jax.block_until_ready(new_grad)
-            # the cost of a next iteration at most: its trials and one value-and-gradient
-            self._estimate = (cfg.linesearch_steps + 1) * (time.perf_counter() - t)
-            self._start = (new_value, new_grad)
-            return new_z, new_state, float(new_value), gnorm, trials + 1
+            return self._lbfgs_iterate(z, state)
         (value, _), grads = self.value_and_grad(z)
         z, state, gnorm = _adam_step(cfg.step_key(), z, state, grads)
         return z, state, None, float(gnorm), 1
 
+    def _cma_iterate(self, z, state):
+        """One CMA-ES generation; z: the best candidate seen so far."""
+        cma = state["cma"]
+        xs = np.stack([cma.ask() for _ in range(cma.population_size)])
+        losses = self.population_losses(xs)
+        # non-finite objectives rank last
+        ranked = np.where(np.isfinite(losses), losses, np.finfo(float).max)
+        cma.tell(list(zip(xs, ranked, strict=True)))
+        i = int(np.argmin(ranked))
+        if ranked[i] < state["best_loss"]:
+            state["best"], state["best_loss"] = xs[i], float(ranked[i])
+        z = _unflat(state["best"], self.space.names)
+        return z, state, state["best_loss"], math.nan, len(xs)
+
+    def _lbfgs_iterate(self, z, state):
+        """One L-BFGS iteration (line search, then value and gradient at the new point)."""
+        cfg = self.config
+        if self._start is None:  # value and gradient at z (first iteration, resume)
+            (value, _), grad = self.value_and_grad(z)
+        else:
+            value, grad = self._start
+        new_z, new_state = _lbfgs_step(
+            cfg.step_key(), z, state, value, grad, self.cases, self.reference
+        )
+        trials = int(optax.tree_utils.tree_get(new_state, "num_linesearch_steps"))
+        gnorm = float(optax.tree_utils.tree_norm(grad))
+        if not float(optax.tree_utils.tree_get(new_state, "decrease_error")) <= 0.0:
+            # no trial decreased enough: stay, restart from steepest descent (the curvature
+            # memory is dropped: its direction need not descend), and start the next search
+            # below the last trial step
+            rate = optax.tree_utils.tree_get(new_state, "learning_rate")
+            state = optax.tree_utils.tree_set(
+                self.optimizer.init(z), learning_rate=rate * LS_DECREASE
+            )
+            self._start = (value, grad)
+            return z, state, float(value), gnorm, trials
+        t = time.perf_counter()
+        (new_value, _), new_grad = self.value_and_grad(new_z)
+        jax.block_until_ready(new_grad)
+        # the cost of a next iteration at most: its trials and one value-and-gradient
+        self._estimate = (cfg.linesearch_steps + 1) * (time.perf_counter() - t)
+        self._start = (new_value, new_grad)
+        return new_z, new_state, float(new_value), gnorm, trials + 1
+
     def warmup(self) -> float:
-        """Compile one iteration (on a copy of the initial state, discarded); returns the
-        seconds it took. `run` calls it before starting its clock."""
+        """Compile one iteration (on a copy of the initial state, discarded; the hybrid: one
+        generation and one L-BFGS iteration); returns the seconds it took. `run` calls it
+        before starting its clock."""
         t = time.perf_counter()
         z, state = self.init()
         z, state, *_ = self._iterate(z, copy.deepcopy(state))
+        if self.config.method == "hybrid":
+            self._start = None
+            z, *_ = self._lbfgs_iterate(z, self.optimizer.init(z))
         jax.block_until_ready(z)
         self._start = None
+        self._estimate = None
         return time.perf_counter() - t
 
     def run(
@@ -395,7 +441,7 @@ class Tuner:
         running at that deadline (the first one compiles) is abandoned. Either way the result
         holds the best point so far (``stopped`` says why it stopped early). With
         ``progress``, one line per iteration goes to ``log``."""
-        executor = self.executor if self.config.method == "cmaes" else None
+        executor = self.executor if self.config.method in POPULATION_METHODS else None
         with (executor or LocalExecutor()).session() as session:
             self._session = session
             self.executor_record = None if session.record["kind"] == "local" else session.record
@@ -430,7 +476,7 @@ class Tuner:
         else:
             loss0, costs0 = self.loss_and_costs(z)
             history.append(self._row(0, z, loss0, elapsed() if budgeted else 0.0, costs0))
-            if cfg.method == "cmaes":  # the starting point is the best seen so far
+            if cfg.method in POPULATION_METHODS:  # the starting point is the best seen so far
                 state["best_loss"] = float(loss0)
         best = (history[-1]["loss"], z, len(history) - 1)
 
@@ -690,13 +736,18 @@ def tune(
 
 def save_checkpoint(out, config: TuneConfig, step: int, z, state, history) -> None:
     """Write OUT/checkpoint.eqx (z and the optax state; exact) or OUT/checkpoint_cma.pkl (the
-    CMA-ES object), and OUT/checkpoint.json (iteration, config, history)."""
+    CMA-ES object; the hybrid's also z and its L-BFGS state), and OUT/checkpoint.json
+    (iteration, config, history)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    if config.method == "cmaes":
+    if config.method in POPULATION_METHODS:
         tmp = out / (CHECKPOINT_CMA + ".tmp")
         # cmaes.CMA drops its random generator when pickled: keep the generator's state too
-        tmp.write_bytes(pickle.dumps({**state, "rng": state["cma"]._rng.get_state()}))
+        saved = {**state, "rng": state["cma"]._rng.get_state()}
+        if config.method == "hybrid":
+            saved["z"] = jax.tree.map(np.asarray, z)
+            saved["lbfgs"] = jax.tree.map(np.asarray, state["lbfgs"])
+        tmp.write_bytes(pickle.dumps(saved))
         tmp.replace(out / CHECKPOINT_CMA)
     else:
         tmp = out / (CHECKPOINT_ARRAYS + ".tmp")
@@ -723,10 +774,13 @@ def load_checkpoint(out, config: TuneConfig, z, state):
         raise ValueError(
             f"checkpoint in {out} was written with a different config (saved, requested): {diff}."
         )
-    if config.method == "cmaes":
+    if config.method in POPULATION_METHODS:
         state = pickle.loads((out / CHECKPOINT_CMA).read_bytes())
         state["cma"]._rng.set_state(state.pop("rng"))
         z = _unflat(state["best"], config.space().names)
+        if config.method == "hybrid":
+            z = jax.tree.map(jnp.asarray, state.pop("z"))
+            state["lbfgs"] = jax.tree.map(jnp.asarray, state["lbfgs"])
     else:
         z, state = eqx.tree_deserialise_leaves(out / CHECKPOINT_ARRAYS, (z, state))
     return int(doc["step"]), z, state, doc["history"]
