@@ -117,16 +117,17 @@ print("directional derivative: autodiff", sum(float(jnp.dot(grad[k], d[k])) for 
 print("                   central diff.", (f[0] - f[1]) / (2 * h))
 
 # %% [markdown]
-# ## 3. Three optimisers on the same cases
+# ## 3. Four optimisers on the same cases
 #
-# L-BFGS (optax, zoom line search; the default), Adam, CMA-ES (the `cmaes` package, the whole
-# population in one batched call). Each history row holds the objective after an iteration and
-# the wall time since the start (compilation excluded, timed separately).
+# L-BFGS (optax, backtracking Armijo line search; the default), Adam, CMA-ES (the `cmaes`
+# package, the whole population in one batched call) and the hybrid (here two CMA-ES
+# generations, then L-BFGS from the best candidate). Each history row holds the objective after
+# an iteration and the wall time since the start (compilation excluded, timed separately).
 
 # %%
 runs = {}
-for method in ("lbfgs", "adam", "cmaes"):
-    t = T.Tuner(dataclasses.replace(config, method=method), cases=cases)
+for method in ("lbfgs", "adam", "cmaes", "hybrid"):
+    t = T.Tuner(dataclasses.replace(config, method=method, cmaes_generations=2), cases=cases)
     r = t.run(progress=False, log=lambda *a: None)
     runs[method] = {0: r.history}
     print(f"{method:6s} objective {r.initial_loss:.4f} -> {r.final_loss:.4f}")

@@ -369,6 +369,10 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
     assert "lower" in capsys.readouterr().err
     assert main(["tune", "--out", str(tmp_path), "--time-budget", "0"]) == 2
     assert "--time-budget" in capsys.readouterr().err
+    assert main(["tune", "--out", str(tmp_path), "--gradient-chunk", "6"]) == 2
+    assert "gradient_chunk must be a positive multiple of 4" in capsys.readouterr().err
+    assert main(["tune", "--out", str(tmp_path), "--cmaes-generations", "0"]) == 2
+    assert "--cmaes-generations" in capsys.readouterr().err
     assert main(["tune-compare", "--study", "optimizers", "--out", str(tmp_path / "c")]) == 2
     assert "--time-budget" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
