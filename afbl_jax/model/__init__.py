@@ -74,6 +74,7 @@ from ._trim import TrimSolution as TrimSolution
 from ._trim import combine_margins as combine_margins
 from ._trim import envelope_margin as envelope_margin
 from ._trim import solve_trim as solve_trim
+from ._trim import trim_residual_bound as trim_residual_bound
 from ._unmodeled import UnmodeledDynamics as UnmodeledDynamics
 from ._unmodeled import measure as measure
 from ._unmodeled import stack_unmodeled as stack_unmodeled

@@ -19,9 +19,9 @@ at zero body rates the paper plant (eq. 15) and the rigid body share this equili
 With `LinearDrag` and no centre-of-pressure offset the tilt is atan(c_d |w - v| / (m g)).
 
 Flight envelope (`envelope_margin`): a trim is flyable when it exists (Newton converged to an
-imbalance below `TRIM_RESIDUAL`), its tilt acos(cos phi cos theta) is within the tilt limit and
-every rotor keeps a reserve: W_i <= (1 - reserve) Omega_max^2 (thrust left for control torque)
-and W_i >= Omega_min^2. The margin is the smallest of 1 - tilt / tilt_limit and
+imbalance below `trim_residual_bound`), its tilt acos(cos phi cos theta) is within the tilt
+limit and every rotor keeps a reserve: W_i <= (1 - reserve) Omega_max^2 (thrust left for
+control torque) and W_i >= Omega_min^2. The margin is the smallest of 1 - tilt / tilt_limit and
 1 - max_i W_i / ((1 - reserve) Omega_max^2) (and of (min_i W_i - Omega_min^2) / W_hover); it is
 >= 0 exactly inside the envelope (`ENVELOPE_CAUSES` names the binding limit).
 """
@@ -43,7 +43,7 @@ from ._plant import plant_derivative
 
 TRIM_RESIDUAL = 1e-8
 """Largest force / weight or torque / (weight x arm length) imbalance [-] a converged trim may
-leave."""
+leave in float64; below float64 the bound is `trim_residual_bound` of the dtype."""
 ENVELOPE_CAUSES: tuple[str, ...] = ("inside", "no_trim", "tilt", "rotor_max", "rotor_min")
 """Envelope status codes: 0 inside; else the limit that binds (no equilibrium found, tilt
 limit, rotor reserve at the top speed, rotor minimum speed)."""
@@ -66,7 +66,8 @@ class TrimSolution(eqx.Module):
             [rad^2/s^2], shape (4,).
         residual: largest remaining imbalance, force / weight or torque / (weight x arm
             length) [-].
-        converged: Newton converged and the residual is below `TRIM_RESIDUAL`.
+        converged: Newton converged and the residual is below `trim_residual_bound` of the
+            dtype (`TRIM_RESIDUAL` in float64).
     """
 
     trim: Trim
@@ -88,6 +89,13 @@ def tilt_angle(phi, theta) -> Array:
     positive = h2 > 0
     horizontal = jnp.where(positive, jnp.sqrt(jnp.where(positive, h2, 1.0)), 0.0)
     return jnp.arctan2(horizontal, jnp.cos(phi) * jnp.cos(theta))
+
+
+def trim_residual_bound(dtype) -> float:
+    """Largest imbalance [-] a converged trim may leave in ``dtype``: `TRIM_RESIDUAL`, or
+    32 machine epsilons where that is larger (3.8e-6 in float32, whose rounding alone leaves
+    imbalances of about 1e-7)."""
+    return max(TRIM_RESIDUAL, 32.0 * float(jnp.finfo(dtype).eps))
 
 
 def _imbalance(x, args):
@@ -141,7 +149,7 @@ def solve_trim(
     )
     x = jax.lax.stop_gradient(sol.value)
     residual = jnp.max(jnp.abs(_imbalance(x, args)))
-    ok = (sol.result == optx.RESULTS.successful) & (residual < TRIM_RESIDUAL)
+    ok = (sol.result == optx.RESULTS.successful) & (residual < trim_residual_bound(dtype))
     ok = ok & jnp.all(jnp.isfinite(x))
     # one Newton step from the root, differentiable in the inputs: its value is the root (the
     # imbalance vanishes there) and its derivative that of the implicit function theorem,

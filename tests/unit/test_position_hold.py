@@ -69,6 +69,28 @@ def test_trim_matches_linear_drag_closed_form():
         np.testing.assert_allclose(sc.initial_state[6:12], 0.0)
 
 
+def test_trim_converges_in_float32():
+    """In float32 a trim inside the envelope still counts as converged (its residual bound
+    follows the dtype) and matches the float64 trim to float32 accuracy."""
+    vehicle = A.QuadrotorParams(**ROTOR).with_thrust_to_weight(2.5)
+
+    def trim(v):
+        wind = jnp.array([v, 0.5 * v, 0.0])
+        return solve_trim(vehicle, vehicle, RotorDrag(), wind, jnp.zeros(3), 1.2 * vehicle.m)
+
+    for v in (0.0, 4.0, 9.0):
+        reference = trim(v)
+        with jax.enable_x64(False):
+            single = trim(v)
+            assert single.trim.attitude.dtype == jnp.float32
+        assert bool(reference.converged) and bool(single.converged)
+        assert float(single.residual) < A.model.trim_residual_bound(np.float32)
+        np.testing.assert_allclose(single.trim.attitude, reference.trim.attitude, atol=1e-5)
+        np.testing.assert_allclose(
+            single.trim.command, reference.trim.command, rtol=1e-5, atol=1e-6
+        )
+
+
 @pytest.mark.parametrize("aero", ["linear", "rotor_drag"])
 @pytest.mark.parametrize("controller", ["fbl", "afbl"])
 def test_position_hold_from_rest_settles_at_the_trim(aero, controller):

@@ -278,6 +278,31 @@ def test_heldout_statistics():
     assert wilson_interval(0, 1024)[0] == 0.0
 
 
+def test_heldout_leaves_out_cases_outside_the_envelope(cases):
+    """A held-out case outside the flight envelope is no controller's failure: it is counted
+    as outside and left out of every statistic and of the failure rate."""
+    import equinox as eqx
+
+    from afbl_jax.studies.tuning._study import _heldout_costs, evaluate_heldout
+
+    solver = {"dtype": "float64", "rtol": 1e-6, "atol": 1e-8}
+    cause = np.zeros(cases.n_cases, np.int32)
+    cause[1] = 1
+    outside = eqx.tree_at(lambda c: c.inputs, cases, {**cases.inputs, "envelope_cause": cause})
+    ctrl = {"paper": make_controller("afbl")}
+    every = evaluate_heldout(ctrl, cases, OBJ, solver)["paper"]
+    some = evaluate_heldout(ctrl, outside, OBJ, solver)["paper"]
+    assert (every["n_cases"], every["outside_envelope"]) == (4, 0)
+    assert (some["n_cases"], some["outside_envelope"]) == (3, 1)
+    c = _heldout_costs(dataclasses.replace(OBJ, **solver), ctrl["paper"], cases)
+    keep = np.array([0, 2, 3])
+    ise = np.asarray(c.ise_attitude + c.ise_altitude)
+    assert some["ise"] == distribution_stats(ise[keep])
+    assert every["ise"] == distribution_stats(ise)
+    assert some["effort"]["mean"] == pytest.approx(np.mean(np.asarray(c.effort)[keep]), 1e-12)
+    assert some["failures"] == int(np.sum(np.asarray(c.failed)[keep]))
+
+
 def test_unconstrained_parametrisation_stays_in_the_box():
     space = GainSpace("fbl", lower=0.2, upper=5.0)
     z0 = space.init_z()
@@ -403,7 +428,8 @@ def test_tune_cli_end_to_end(tmp_path):
     assert load_gains(out / "gains.json").name == "fbl"
     doc = json.loads((out / "evaluation.json").read_text())
     assert doc["meta"]["config"]["seed"] == 0 and doc["meta"]["config"]["heldout_seed"] == 1
-    assert doc["heldout"]["tuned"]["n_cases"] == 8
+    tuned = doc["heldout"]["tuned"]
+    assert tuned["n_cases"] + tuned["outside_envelope"] == 8
     assert set(doc["limits"]) >= {"effort_active", "saturation_active", "failures"}
 
 

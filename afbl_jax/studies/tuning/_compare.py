@@ -126,9 +126,12 @@ def compare_controllers(
 
 
 def format_controllers(heldout: dict) -> str:
+    first = next(iter(heldout.values()))
     lines = [
+        f"held-out: {first['n_cases']} cases inside the flight envelope "
+        f"({first.get('outside_envelope', 0)} outside it left out)",
         f"{'gains':<20}{'att P50':>11}{'alt P50':>11}{'ISE P90':>11}{'ISE CVaR.9':>11}"
-        f"{'effort P50':>11}{'failed':>8}"
+        f"{'effort P50':>11}{'failed':>8}",
     ]
     for name, e in heldout.items():
         lines.append(

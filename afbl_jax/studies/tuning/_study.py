@@ -22,7 +22,7 @@ from ..executors import Executor
 from ..montecarlo import wilson_interval
 from ..reproduce import SCENARIO_KEYS, ReproduceConfig, run_reproduction
 from ._cases import nominal_vehicle, training_cases
-from ._objective import ObjectiveConfig, case_costs, limit_report
+from ._objective import ObjectiveConfig, case_costs, envelope_weights, limit_report
 from ._optimize import CHECKPOINT_STATE, TuneConfig, Tuner, TuneResult, within_deadline
 
 HELDOUT_CASES = 1024
@@ -77,17 +77,20 @@ def evaluate_heldout(
     config: ObjectiveConfig,
     solver: dict | None = None,
 ) -> dict:
-    """Per controller, on ``cases`` (sensor noise as sampled): P50/P90/P99, CVaR_0.9 and mean
-    of ISE = ISE_att + ISE_alt [rad^2 s + m^2 s], each ISE, effort and saturation over every
-    case (a failed case counts with the costs accumulated until it failed), and the failure
-    rate with its 95 % Wilson interval. Solved as the Monte-Carlo study does (`HELDOUT_SOLVER`;
-    ``solver`` overrides it)."""
+    """Per controller, on the ``cases`` inside the vehicle's flight envelope (sensor noise as
+    sampled; a case outside it, decided before simulating, is no controller's failure and is
+    left out and counted as ``outside_envelope``): P50/P90/P99, CVaR_0.9 and mean of
+    ISE = ISE_att + ISE_alt [rad^2 s + m^2 s], each ISE, effort and saturation (a failed case
+    counts with the costs accumulated until it failed), and the failure rate with its 95 %
+    Wilson interval; ``n_cases`` is the number of cases inside the envelope. Solved as the
+    Monte-Carlo study does (`HELDOUT_SOLVER`; ``solver`` overrides it)."""
     config = dataclasses.replace(config, **(HELDOUT_SOLVER if solver is None else solver))
+    inside = np.asarray(envelope_weights(cases)) > 0
     out = {}
     for name, ctrl in controllers.items():
         c = jax.tree.map(np.asarray, _heldout_costs(config, ctrl, cases))
-        n = int(c.failed.shape[0])
-        k = int(np.sum(c.failed))
+        n = int(np.sum(inside))
+        k = int(np.sum(c.failed[inside]))
         values = {
             "ise": c.ise_attitude + c.ise_altitude,
             "ise_attitude": c.ise_attitude,
@@ -95,11 +98,16 @@ def evaluate_heldout(
             "effort": c.effort,
             "saturation": c.saturation,
         }
-        entry = {"n_cases": n, "failures": k, "failure_rate": k / n}
+        entry = {
+            "n_cases": n,
+            "outside_envelope": int(inside.size - n),
+            "failures": k,
+            "failure_rate": k / n if n else math.nan,
+        }
         entry["failure_wilson95"] = list(wilson_interval(k, n))
         for key in HELDOUT_METRICS:
-            entry[key] = distribution_stats(values[key])
-        entry["saturated_fraction"] = float(np.mean(c.saturation > 0))
+            entry[key] = distribution_stats(values[key][inside])
+        entry["saturated_fraction"] = float(np.mean(c.saturation[inside] > 0)) if n else math.nan
         out[name] = entry
     return out
 
@@ -135,12 +143,14 @@ def format_report(
     on_box: list[str] | None = None,
 ) -> str:
     first = next(iter(heldout.values()))
+    outside = first.get("outside_envelope", 0)
     lines = [
-        f"Held-out evaluation: {first['n_cases']} fresh cases (seed {heldout_seed}; training "
+        f"Held-out evaluation: {first['n_cases']} fresh cases inside the flight envelope "
+        f"({outside} outside it left out; seed {heldout_seed}; training "
         f"seed {config.seed}; sensor noise on), rotor limit omega_max = {omega_max:.1f} rad/s",
         "ISE = ISE_att + ISE_alt [rad^2 s + m^2 s]; effort = int |u - u_hover|^2 dt; "
-        "sat = saturation integral [s]; every case counted (failed: costs until failure); "
-        "float32 solves (rtol 3e-6, atol 3e-7) as in the Monte-Carlo study",
+        "sat = saturation integral [s]; every case inside the envelope counted (failed: costs "
+        "until failure); float32 solves (rtol 3e-6, atol 3e-7) as in the Monte-Carlo study",
         f"{'gains':<8}{'metric':<14}{'P50':>11}{'P90':>11}{'P99':>11}{'CVaR0.9':>11}{'mean':>11}",
     ]
     for name, e in heldout.items():
