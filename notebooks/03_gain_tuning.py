@@ -24,16 +24,17 @@
 # size (4 short cases); the studies behind the README's numbers are one command each:
 #
 # ```
-# afbl tune --controller afbl --cases 8 --time-budget 120 --out results/tune_afbl
-# afbl tune-compare --study optimizers --cases 8 --time-budget 120 --seeds 0 1 2 --out ...
-# afbl tune-compare --study controllers --cases 8 --time-budget 120 --seeds 0 1 2 --out ...
+# afbl tune --controller afbl --cases 8 --time-budget 150 --out results/tune_afbl
+# afbl tune-compare --study optimizers --cases 8 --time-budget 150 --seeds 0 1 2 --out ...
+# afbl tune-compare --study controllers --method cmaes --cases 8 --time-budget 150 \
+#     --seeds 0 1 2 --out ...
 # afbl tune-compare --study gradient-cost --cases 16 --out ...
 # ```
 #
 # 1. cases and the normalised objective with limits;
 # 2. its gradient through the scan of digital-control interval solves, against a central
 #    difference;
-# 3. L-BFGS, Adam and CMA-ES on the same cases;
+# 3. L-BFGS, Adam, CMA-ES and CMA-ES then L-BFGS on the same cases;
 # 4. the comparison studies' results (result files of the commands above, in `docs/results/`).
 
 # %%
