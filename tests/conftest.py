@@ -1,7 +1,9 @@
 import gc
+import json
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 # One persistent compilation cache for the whole test session, made by the first pytest
 # process (xdist's controller) before JAX is imported and inherited through the environment by
@@ -16,6 +18,12 @@ if _OWNS_SESSION_CACHE:
 os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ[_SESSION_CACHE]
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+# The tests compile far more than they run: XLA's CPU backend compiles without LLVM's
+# optimisation passes (the same HLO programs and IEEE arithmetic, generated faster and run
+# slower), in this process and, through the environment, in its subprocesses.
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -46,28 +54,22 @@ def _release_compiled_programs():
     gc.collect()
 
 
-# The slowest test files first (measured per-file times on a 2-core machine, slowest first), so
-# that pytest-xdist's two workers, which take whole files in this order (`--dist loadfile
-# --no-loadscope-reorder` in pyproject.toml), finish together instead of one waiting for a long
-# file handed out last; the other files follow in collection order.
-SLOWEST_FILES = (
-    "test_notebooks.py",
-    "test_montecarlo.py",
-    "test_studies.py",
-    "test_tuning.py",
-    "test_lean.py",
-    "test_simulate.py",
-    "test_dask.py",
-    "test_reliability_cli.py",
-    "test_batch.py",
-    "test_montecarlo_unmodeled.py",
-    "test_unmodeled.py",
-    "test_rare.py",
-    "test_reliability.py",
-    "test_cli.py",
-)
+# The slowest test files first (the per-file times recorded on a 2-core machine by
+# `studies/test_times.py` in docs/results/test_times.json), so that pytest-xdist's two workers,
+# which take whole files in this order (`--dist loadfile --no-loadscope-reorder` in
+# pyproject.toml), finish together instead of one waiting for a long file handed out last; files
+# the record does not know follow in collection order.
+def _recorded_file_seconds() -> dict[str, float]:
+    record = Path(__file__).resolve().parents[1] / "docs" / "results" / "test_times.json"
+    try:
+        doc = json.loads(record.read_text())
+        (run,) = doc["files"].values()
+        return {Path(f["file"]).name: float(f["seconds"]) for f in run["files"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
 
 
 def pytest_collection_modifyitems(config, items):
-    rank = {name: i for i, name in enumerate(SLOWEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: files stay whole
+    seconds = _recorded_file_seconds()
+    # stable: files stay whole, the unknown ones after the known ones
+    items.sort(key=lambda item: -seconds.get(item.path.name, -1.0))

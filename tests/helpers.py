@@ -38,3 +38,17 @@ class count_compiles:
 
         jax.monitoring.unregister_event_duration_listener(self._listener)
         return False
+
+
+def subprocess_env(**overrides: str) -> dict[str, str]:
+    """This process's environment for a subprocess, without a host device count in
+    ``XLA_FLAGS`` (the subprocess chooses its own; the test session's other XLA flags stay, so
+    that it shares the session's compiled programs), with ``overrides`` set."""
+    import os
+
+    flags = [
+        f
+        for f in os.environ.get("XLA_FLAGS", "").split()
+        if not f.startswith("--xla_force_host_platform_device_count")
+    ]
+    return {**os.environ, "XLA_FLAGS": " ".join(flags), **overrides}

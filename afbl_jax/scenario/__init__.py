@@ -19,6 +19,8 @@ from ._references import make_reference as make_reference
 from ._references import min_jerk_blend as min_jerk_blend
 from ._scenario import Scenario as Scenario
 from ._scenario import stack_scenarios as stack_scenarios
+from ._trimmed import start_at_trim as start_at_trim
+from ._trimmed import trim_conditions as trim_conditions
 from ._trimmed import trim_scenario as trim_scenario
 from ._wind import KNOT as KNOT
 from ._wind import ROUGHNESS_LENGTH as ROUGHNESS_LENGTH

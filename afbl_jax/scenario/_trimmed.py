@@ -5,6 +5,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._typing import Scalar, Vec3
 from ..model import (
     AbstractAerodynamics,
     QuadrotorParams,
@@ -38,12 +39,35 @@ def trim_scenario(
     """
     model = vehicle if model is None else model
     aero = make_aerodynamics(aerodynamics)
-    mass = vehicle.m * scenario.mass_factor(scenario.t0)
-    wind = scenario.wind.mean
-    velocity = jnp.zeros_like(wind) if position_hold else wind
+    mass, wind, velocity = trim_conditions(scenario, vehicle, position_hold=position_hold)
     solution = solve_trim(
         vehicle, model, aero, wind, velocity, mass, scenario.initial_state[..., 5]
     )
+    return start_at_trim(scenario, vehicle, solution, position_hold=position_hold), solution
+
+
+def trim_conditions(
+    scenario: Scenario, vehicle: QuadrotorParams, *, position_hold: bool = True
+) -> tuple[Scalar, Vec3, Vec3]:
+    """The conditions `trim_scenario` trims at: the true mass at t0 [kg], the wind's steady
+    mean [m/s] and the earth-frame velocity [m/s] (0 holding position, the mean wind drifting
+    with the air)."""
+    mass = vehicle.m * scenario.mass_factor(scenario.t0)
+    wind = scenario.wind.mean
+    velocity = jnp.zeros_like(wind) if position_hold else wind
+    return mass, wind, velocity
+
+
+def start_at_trim(
+    scenario: Scenario,
+    vehicle: QuadrotorParams,
+    solution: TrimSolution,
+    *,
+    position_hold: bool = True,
+) -> Scenario:
+    """``scenario`` started at ``solution``, a trim solved at its `trim_conditions` (what
+    `trim_scenario` returns; for callers that solve several trims in one batched call)."""
+    mass, _, velocity = trim_conditions(scenario, vehicle, position_hold=position_hold)
     ok = solution.converged
     hover = jnp.zeros(4, solution.trim.command.dtype).at[3].set(mass * vehicle.g)
     trim = Trim(
@@ -53,10 +77,9 @@ def trim_scenario(
     state = (
         scenario.initial_state.at[3:5].set(trim.attitude).at[6:9].set(velocity).at[9:12].set(0.0)
     )
-    trimmed = eqx.tree_at(
+    return eqx.tree_at(
         lambda s: (s.initial_state, s.trim),
         scenario,
         (state, trim),
         is_leaf=lambda x: x is None,
     )
-    return trimmed, solution

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from ..helpers import subprocess_env
+
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"
 
@@ -43,8 +45,7 @@ def _check_importance_estimate(est: dict, results: Path) -> None:
 
 
 def _run(script: str, *args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env.pop("XLA_FLAGS", None)
+    env = subprocess_env(PYTHONUNBUFFERED="1")
     return subprocess.run(
         [sys.executable, str(STUDIES / script), *args],
         capture_output=True,

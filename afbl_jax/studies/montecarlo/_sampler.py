@@ -48,7 +48,8 @@ from ...scenario import (
     mean_wind_velocity,
     mission_reference,
     paper_reference,
-    trim_scenario,
+    start_at_trim,
+    trim_conditions,
     turbulence_edges,
     turbulence_grid,
     w20,
@@ -579,14 +580,24 @@ def _start_and_envelope(scenario, vehicle, model, aerodynamics, spec, gust_ampli
     the wind of each trim (no airspeed)."""
     hold = bool(spec["flight"]["position_hold"])
     limits = EnvelopeLimits(spec["envelope"]["tilt"], spec["envelope"]["rotor_reserve"])
-    trimmed, solution = trim_scenario(scenario, vehicle, model, aerodynamics, position_hold=hold)
+    mass, mean, velocity = trim_conditions(scenario, vehicle, position_hold=hold)
     heavy = vehicle.m * (1.0 + jnp.maximum(scenario.payload_fraction, 0.0))
     heavy = jnp.maximum(heavy, vehicle.m * scenario.mass_factor(scenario.t0))
-    margins = [envelope_margin(solution, vehicle, limits)]
-    for wind in (scenario.wind.mean, scenario.wind.mean + gust_amplitude):
-        velocity = jnp.zeros_like(wind) if hold else wind
-        other = solve_trim(vehicle, model, aerodynamics, wind, velocity, heavy)
-        margins.append(envelope_margin(other, vehicle, limits))
+    # the three trims in one batched Newton solve (one compiled solver, not three): the start
+    # (mass at t0, the initial yaw), then the largest mass at the mean wind and after the gust
+    winds = jnp.stack([mean, mean, mean + gust_amplitude])
+    velocities = jnp.stack([velocity, *(jnp.zeros_like(w) if hold else w for w in winds[1:])])
+    masses = jnp.stack([mass, heavy, heavy])
+    psis = jnp.stack([scenario.initial_state[5], 0.0, 0.0])
+    solutions = jax.vmap(lambda w, v, m, p: solve_trim(vehicle, model, aerodynamics, w, v, m, p))(
+        winds, velocities, masses, psis
+    )
+    solution = jax.tree.map(lambda x: x[0], solutions)
+    trimmed = start_at_trim(scenario, vehicle, solution, position_hold=hold)
+    margins = [
+        envelope_margin(jax.tree.map(lambda x, i=i: x[i], solutions), vehicle, limits)
+        for i in range(3)
+    ]
     margin, cause = combine_margins(*margins)
     if spec["flight"]["start"] == "trimmed":
         scenario = trimmed
@@ -667,7 +678,41 @@ def sample_cases_at(
     return batch if batch.n_cases == n else batch.take(np.arange(n))
 
 
+def _sampler_size(n: int) -> int:
+    """The batch the sampler draws for ``n`` cases: the next power of two from 8 up to 64, then
+    the next multiple of 64, so that a few compiled samplers serve every batch size (the padding
+    repeats the last case and is dropped; a case is drawn the same in every batch)."""
+    if n <= 64:
+        return max(8, 1 << (n - 1).bit_length())
+    return -(-n // 64) * 64
+
+
+def _first_cases(batch: CaseBatch, n: int) -> CaseBatch:
+    """The first ``n`` cases of ``batch``, sliced on the host (no compiled gather per leaf)."""
+
+    def head(x):
+        return jnp.asarray(np.asarray(x)[:n])
+
+    model = jax.tree.map(head, batch.model) if batch.model_batched else batch.model
+    return CaseBatch(
+        jax.tree.map(head, batch.scenario),
+        jax.tree.map(head, batch.vehicle),
+        model,
+        {k: head(v) for k, v in batch.inputs.items()},
+        batch.index[:n],
+        None if batch.unmodeled is None else jax.tree.map(head, batch.unmodeled),
+        batch.aerodynamics,
+        batch.position_loop,
+    )
+
+
 def _sample_index(distribution: Distribution, index: np.ndarray, seed: int) -> CaseBatch:
+    n = index.size
+    padded = np.concatenate([index, np.full(_sampler_size(n) - n, index[-1])])
+    return _first_cases(_draw_index(distribution, padded, seed), n)
+
+
+def _draw_index(distribution: Distribution, index: np.ndarray, seed: int) -> CaseBatch:
     keys = case_keys(seed, index)
     scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
     unmodeled = None
