@@ -688,10 +688,11 @@ def _sampler_size(n: int) -> int:
 
 
 def _first_cases(batch: CaseBatch, n: int) -> CaseBatch:
-    """The first ``n`` cases of ``batch``, sliced on the host (no compiled gather per leaf)."""
+    """The first ``n`` cases of ``batch``, sliced on the host and put back on the device (no
+    compiled program per leaf shape)."""
 
     def head(x):
-        return jnp.asarray(np.asarray(x)[:n])
+        return jax.device_put(np.asarray(x)[:n])
 
     model = jax.tree.map(head, batch.model) if batch.model_batched else batch.model
     return CaseBatch(
