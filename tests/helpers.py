@@ -1,5 +1,7 @@
 """Shared test helpers (one tolerance-explicit comparison)."""
 
+import os
+
 import jax
 import numpy as np
 
@@ -44,8 +46,6 @@ def subprocess_env(**overrides: str) -> dict[str, str]:
     """This process's environment for a subprocess, without a host device count in
     ``XLA_FLAGS`` (the subprocess chooses its own; the test session's other XLA flags stay, so
     that it shares the session's compiled programs), with ``overrides`` set."""
-    import os
-
     flags = [
         f
         for f in os.environ.get("XLA_FLAGS", "").split()

@@ -219,15 +219,19 @@ class CaseBatch(eqx.Module):
         if isinstance(indices, slice):
             indices = np.arange(self.n_cases)[indices]
         idx = np.asarray(indices)
-        pick = lambda x: x[idx]  # noqa: E731
+        return self._map_cases(lambda x: x[idx], self.index[idx])
+
+    def _map_cases(self, pick, index) -> CaseBatch:
+        """This batch with ``pick`` applied to every per-case array (the model where batched)
+        and the case indices ``index``."""
         model = jax.tree.map(pick, self.model) if self.model_batched else self.model
         unmodeled = None if self.unmodeled is None else jax.tree.map(pick, self.unmodeled)
         return CaseBatch(
             jax.tree.map(pick, self.scenario),
             jax.tree.map(pick, self.vehicle),
             model,
-            {k: v[idx] for k, v in self.inputs.items()},
-            self.index[idx],
+            {k: pick(v) for k, v in self.inputs.items()},
+            index,
             unmodeled,
             self.aerodynamics,
             self.position_loop,
@@ -580,13 +584,12 @@ def _start_and_envelope(scenario, vehicle, model, aerodynamics, spec, gust_ampli
     the wind of each trim (no airspeed)."""
     hold = bool(spec["flight"]["position_hold"])
     limits = EnvelopeLimits(spec["envelope"]["tilt"], spec["envelope"]["rotor_reserve"])
-    mass, mean, velocity = trim_conditions(scenario, vehicle, position_hold=hold)
-    heavy = vehicle.m * (1.0 + jnp.maximum(scenario.payload_fraction, 0.0))
-    heavy = jnp.maximum(heavy, vehicle.m * scenario.mass_factor(scenario.t0))
+    mass, mean, _ = trim_conditions(scenario, vehicle, position_hold=hold)
+    heavy = jnp.maximum(vehicle.m * (1.0 + jnp.maximum(scenario.payload_fraction, 0.0)), mass)
     # the three trims in one batched Newton solve (one compiled solver, not three): the start
     # (mass at t0, the initial yaw), then the largest mass at the mean wind and after the gust
     winds = jnp.stack([mean, mean, mean + gust_amplitude])
-    velocities = jnp.stack([velocity, *(jnp.zeros_like(w) if hold else w for w in winds[1:])])
+    velocities = jnp.zeros_like(winds) if hold else winds  # as `trim_conditions` sets them
     masses = jnp.stack([mass, heavy, heavy])
     psis = jnp.stack([scenario.initial_state[5], 0.0, 0.0])
     solutions = jax.vmap(lambda w, v, m, p: solve_trim(vehicle, model, aerodynamics, w, v, m, p))(
@@ -671,11 +674,7 @@ def sample_cases_at(
         raise ValueError("sample_cases_at needs at least one case index.")
     if size is not None and (isinstance(size, bool) or int(size) < index.size):
         raise ValueError(f"size must be an integer >= the {index.size} indices, got {size!r}.")
-    n = index.size
-    if size is not None and int(size) > n:
-        index = np.concatenate([index, np.full(int(size) - n, index[-1])])
-    batch = _sample_index(distribution, index, seed)
-    return batch if batch.n_cases == n else batch.take(np.arange(n))
+    return _sample_index(distribution, index, seed, size=size)
 
 
 def _sampler_size(n: int) -> int:
@@ -690,26 +689,16 @@ def _sampler_size(n: int) -> int:
 def _first_cases(batch: CaseBatch, n: int) -> CaseBatch:
     """The first ``n`` cases of ``batch``, sliced on the host and put back on the device (no
     compiled program per leaf shape)."""
-
-    def head(x):
-        return jax.device_put(np.asarray(x)[:n])
-
-    model = jax.tree.map(head, batch.model) if batch.model_batched else batch.model
-    return CaseBatch(
-        jax.tree.map(head, batch.scenario),
-        jax.tree.map(head, batch.vehicle),
-        model,
-        {k: head(v) for k, v in batch.inputs.items()},
-        batch.index[:n],
-        None if batch.unmodeled is None else jax.tree.map(head, batch.unmodeled),
-        batch.aerodynamics,
-        batch.position_loop,
-    )
+    return batch._map_cases(lambda x: jax.device_put(np.asarray(x)[:n]), batch.index[:n])
 
 
-def _sample_index(distribution: Distribution, index: np.ndarray, seed: int) -> CaseBatch:
+def _sample_index(
+    distribution: Distribution, index: np.ndarray, seed: int, *, size: int | None = None
+) -> CaseBatch:
+    """The cases of ``index``, drawn in a batch of `_sampler_size` of ``size`` (default: the
+    number of indices) cases, the padding dropped."""
     n = index.size
-    padded = np.concatenate([index, np.full(_sampler_size(n) - n, index[-1])])
+    padded = np.concatenate([index, np.full(_sampler_size(max(n, int(size or n))) - n, index[-1])])
     return _first_cases(_draw_index(distribution, padded, seed), n)
 
 
