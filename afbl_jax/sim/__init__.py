@@ -1,6 +1,6 @@
 """The closed loop and its solves: one case (`simulate`), many cases (`simulate_batch`: vmap or
 grouped ensembles on the lean loop or diffeqsolve, float32, chunks, devices), the status
-enumeration, CPU devices and the compilation cache."""
+enumeration, CPU devices, the compilation cache and the executable cache."""
 
 from ._batch import CPU_COMPILER_OPTIONS as CPU_COMPILER_OPTIONS
 from ._batch import STRATEGIES as STRATEGIES
@@ -26,6 +26,11 @@ from ._ensemble import INTEGRATORS as INTEGRATORS
 from ._ensemble import EnsembleField as EnsembleField
 from ._ensemble import ensemble_rms_norm as ensemble_rms_norm
 from ._ensemble import solve_group as solve_group
+from ._executables import EXECUTABLES_SUBFOLDER as EXECUTABLES_SUBFOLDER
+from ._executables import LOAD_EVENT as LOAD_EVENT
+from ._executables import CachedJit as CachedJit
+from ._executables import executable_cache_folder as executable_cache_folder
+from ._executables import set_executable_cache as set_executable_cache
 from ._lean import Groups as Groups
 from ._lean import LoopOutcome as LoopOutcome
 from ._lean import Step as Step

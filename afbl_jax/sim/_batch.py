@@ -58,6 +58,7 @@ from ..model import (
 from ..scenario import Scenario
 from ._closed_loop import CaseInputs, ClosedLoop, DivergenceLimits
 from ._ensemble import INTEGRATORS, EnsembleField, solve_group
+from ._executables import CachedJit
 from ._solve import get_solver, simulate
 
 STRATEGIES = ("vmap", "ensemble")
@@ -253,8 +254,7 @@ _plain_run = eqx.filter_jit(_run)
 @functools.cache
 def _compiled_run(platform: str = "cpu"):
     """`_run` jitted with `batch_compiler_options` of ``platform``."""
-    options = batch_compiler_options(platform)
-    return eqx.filter_jit(_run, compiler_options=options) if options else _plain_run
+    return CachedJit(_run, "simulate_batch", batch_compiler_options(platform))
 
 
 def _leading(x) -> int | None:

@@ -38,10 +38,16 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
     ``none``, ``false``, ``no``) and ``path`` is None, or when JAX already has a cache folder
     (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``); returns the folder in use otherwise.
 
+    Also keeps the compiled executables of the large programs (`CachedJit`: the batched
+    solves, `simulate`, the Monte-Carlo sampler) in the folder's `EXECUTABLES_SUBFOLDER`, so
+    that a later process loads them without tracing (`set_executable_cache`).
+
     Raises:
         OSError: the folder cannot be created.
     """
     import jax
+
+    from ._executables import EXECUTABLES_SUBFOLDER, set_executable_cache
 
     if jax.config.jax_compilation_cache_dir:
         return None
@@ -53,6 +59,7 @@ def configure_compilation_cache(path: str | os.PathLike | None = None) -> Path |
     folder = Path(path).expanduser()
     folder.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    set_executable_cache(folder / EXECUTABLES_SUBFOLDER)
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder

@@ -35,6 +35,7 @@ from ._closed_loop import (
     Signals,
 )
 from ._digital import held_index, initial_buffer, interpolate, sample_instant, sample_time
+from ._executables import CachedJit
 from ._status import STATUS_MAX_STEPS, STATUS_OK, status_from
 
 SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8}
@@ -330,11 +331,13 @@ def _digital(
     return _result(loop, inputs, ts, traj, signals, final, t_final, status, tuple(nsteps))
 
 
-@eqx.filter_jit
-def _simulate(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense):
+def _simulate_case(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense):
     if loop.digital:
         return _digital(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
     return _continuous(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense)
+
+
+_simulate = CachedJit(_simulate_case, "simulate")
 
 
 def simulate(

@@ -54,6 +54,7 @@ from ...scenario import (
     turbulence_grid,
     w20,
 )
+from ...sim import CachedJit
 from ._distribution import ATTITUDE_PROFILES, POSITION_PROFILES, Distribution
 
 GROUP_SIZE = 4
@@ -991,18 +992,20 @@ def _sampler_tables(distribution: Distribution):
     return tables, edges, omega, references
 
 
-@functools.lru_cache(maxsize=8)
-def _batch_sampler(distribution: Distribution):
-    """A jitted keys -> (scenario, vehicle, inputs) sampler for one distribution (cached)."""
+def _sample_keys(keys, distribution: Distribution):
+    """keys (n, 2) -> (scenario, vehicle, inputs) of one distribution's cases."""
     spec = distribution.spec
-    tables, edges, omega, references = _sampler_tables(distribution)
-    return jax.jit(
-        lambda keys: _batched_cases(
-            jax.vmap(lambda key: _draw_variates(key, spec))(keys),
-            spec,
-            tables,
-            edges,
-            omega,
-            references,
-        )
-    )
+    with jax.ensure_compile_time_eval():  # constants of the program, as numbers
+        tables, edges, omega, references = _sampler_tables(distribution)
+    variates = jax.vmap(lambda key: _draw_variates(key, spec))(keys)
+    return _batched_cases(variates, spec, tables, edges, omega, references)
+
+
+_batch_sampler_jit = CachedJit(_sample_keys, "sampler")
+"""`_sample_keys` compiled per distribution and batch size (its executables kept between
+processes where `afbl_jax.configure_compilation_cache` keeps them)."""
+
+
+def _batch_sampler(distribution: Distribution):
+    """The jitted keys -> (scenario, vehicle, inputs) sampler of one distribution."""
+    return lambda keys: _batch_sampler_jit(keys, distribution)

@@ -6,8 +6,9 @@ Where the seconds go: `run_study` prints, and records in meta.json as ``phases_s
 wall time of each phase of the invocation (`PHASES`): ``startup`` (the process's start-up,
 imports and argument checks before the study, when the caller gives it: the ``afbl`` command
 does), ``compilation`` (JAX tracing, lowering and XLA compilation, or loading the compiled
-program from the persistent cache, in this process: the union of JAX's
-``/jax/core/compile/*`` event spans), ``runs`` (sampling, solving and writing the chunks, less
+program from the persistent cache, or loading a compiled executable without tracing
+(`afbl_jax.sim.CachedJit`), in this process: the union of JAX's ``/jax/core/compile/*``
+event spans and the executable loads), ``runs`` (sampling, solving and writing the chunks, less
 their compilation) and ``report`` (summary, replays of the worst cases, report files, less
 their compilation); ``total`` is their sum. With a Dask executor the workers compile, inside
 ``runs``.
@@ -28,6 +29,7 @@ import jax
 
 from ...io import FileLock, atomic_write_text, controller_from_dict, run_metadata, table_columns
 from ...model import AbstractController
+from ...sim import LOAD_EVENT as EXECUTABLE_LOAD_EVENT
 from ..executors import Executor
 from ._distribution import Distribution, default_distribution
 from ._report import format_summary, replay_worst, summarize, summary_json, write_report
@@ -75,21 +77,25 @@ _COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_trace_duration",
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
     "/jax/core/compile/backend_compile_duration",
+    EXECUTABLE_LOAD_EVENT,
 )
-"""JAX's events of tracing, lowering and XLA compilation (or loading from the cache)."""
+"""JAX's events of tracing, lowering and XLA compilation (or loading from the cache), and the
+loads of compiled executables (`afbl_jax.sim.CachedJit`)."""
 
 
 class CompileClock:
     """Seconds JAX spends tracing, lowering and compiling (or loading compiled programs from the
     persistent cache) while `measure` is active: the union of the `_COMPILE_EVENTS` spans,
-    so nested or overlapping events count once. ``programs``: XLA compilations or cache loads;
-    ``cache_hits``: those loaded from the persistent compilation cache."""
+    so nested or overlapping events count once. ``programs``: XLA compilations or cache loads
+    and executables loaded; ``cache_hits``: those loaded from the persistent compilation
+    cache; ``executables_loaded``: those loaded from the executable cache (no tracing)."""
 
     def __init__(self) -> None:
         self._spans: list[tuple[float, float]] = []
         self._lock = threading.Lock()
         self.programs = 0
         self.cache_hits = 0
+        self.executables_loaded = 0
 
     def record_span(self, event: str, start: float, end: float, **kwargs) -> None:
         """Listener of `jax.monitoring` time spans: keeps the span [start, end] [s] of a
@@ -97,7 +103,9 @@ class CompileClock:
         if event in _COMPILE_EVENTS:
             with self._lock:
                 self._spans.append((start, end))
-                self.programs += event == _COMPILE_EVENTS[-1]
+                loaded = event == EXECUTABLE_LOAD_EVENT
+                self.programs += loaded or event == "/jax/core/compile/backend_compile_duration"
+                self.executables_loaded += loaded
 
     def record_event(self, event: str, **kwargs) -> None:
         """Listener of `jax.monitoring` events: counts the persistent-cache hits."""
@@ -143,7 +151,9 @@ def phase_seconds(
     return phases
 
 
-def format_phases(phases: dict, programs: int = 0, cache_hits: int = 0) -> str:
+def format_phases(
+    phases: dict, programs: int = 0, cache_hits: int = 0, executables_loaded: int = 0
+) -> str:
     """One line: the seconds of each phase (`PHASES`) and the total."""
     words = {
         "startup": "start-up and imports",
@@ -157,7 +167,8 @@ def format_phases(phases: dict, programs: int = 0, cache_hits: int = 0) -> str:
             continue
         part = f"{words[name]} {phases[name]:.1f} s"
         if name == "compilation" and programs:
-            part += f" ({programs} programs, {cache_hits} from the compilation cache)"
+            loaded = f", {executables_loaded} loaded compiled" if executables_loaded else ""
+            part += f" ({programs} programs, {cache_hits} from the compilation cache{loaded})"
         parts.append(part)
     return "time: " + ", ".join(parts) + f"; total {phases['total']:.1f} s"
 
@@ -201,7 +212,7 @@ def run_study(
                 f"({elapsed:.1f} s); when every host is done: afbl merge --out DIR "
                 "<the hosts' folders>"
             )
-            echo(format_phases(phases, clock.programs, clock.cache_hits))
+            echo(format_phases(phases, clock.programs, clock.cache_hits, clock.executables_loaded))
         return None
     return _finish(
         out,
@@ -293,7 +304,7 @@ def _finish(
             f"\nwrote {out}/results.parquet, meta.json, summary.json"
             + (", report.md, report.html" if report else "")
         )
-        echo(format_phases(phases, clock.programs, clock.cache_hits))
+        echo(format_phases(phases, clock.programs, clock.cache_hits, clock.executables_loaded))
     return summary
 
 
