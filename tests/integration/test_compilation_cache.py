@@ -19,15 +19,19 @@ import jax
 import jax.monitoring as mon
 jax.config.update("jax_enable_x64", True)
 import afbl_jax as A
-counts = {"hits": 0, "compiles": 0}
+counts = {"hits": 0, "compiles": 0, "loaded": 0}
 def on_event(name, **kw):
     if name == "/jax/compilation_cache/cache_hits":
         counts["hits"] += 1
 def on_duration(name, d, **kw):
     if name == "/jax/core/compile/backend_compile_duration":
         counts["compiles"] += 1
+def on_span(name, start, end, **kw):
+    if name == A.sim.LOAD_EVENT:
+        counts["loaded"] += 1
 mon.register_event_listener(on_event)
 mon.register_event_duration_secs_listener(on_duration)
+mon.register_event_time_span_listener(on_span)
 folder = A.configure_compilation_cache()
 scenarios = A.stack_scenarios([A.paper_scenario("uncertain", "step")] * 4)
 m = A.simulate_batch(A.AFBL(), scenarios, A.QuadrotorParams(), strategy="ensemble",
@@ -64,15 +68,20 @@ def test_second_process_loads_the_programs_with_the_same_numbers(tmp_path):
     first = _run(env)
     assert first["folder"] == str(tmp_path / "xla")
     assert first["compiles"] > 0
-    entries = sorted(p.name for p in (tmp_path / "xla").iterdir())
+    entries = sorted(p.relative_to(tmp_path) for p in (tmp_path / "xla").rglob("*"))
     assert entries  # the programs were written
+    kept = list((tmp_path / "xla" / A.sim.EXECUTABLES_SUBFOLDER).glob("*.exe"))
+    assert len(kept) == 1  # the ensemble solve's executable
     second = _run(env)
-    # every program of the second process is loaded (JAX's compile event fires for loads too;
-    # a program compiled twice in one process is loaded the second time: hits in the first)
-    assert second["hits"] == second["compiles"] == first["compiles"] > first["hits"]
+    # every program of the second process is loaded: the solve's executable without tracing
+    # it (so also without the small programs its tracing evaluates), the others from JAX's
+    # cache (JAX's compile event fires for loads too; a program compiled twice in one process
+    # is loaded the second time: hits in the first)
+    assert second["loaded"] == 1 and first["loaded"] == 0
+    assert second["hits"] == second["compiles"] < first["compiles"]
     assert second["ise"] == first["ise"] and second["steps"] == first["steps"]
     # nothing new to write: the same programs
-    assert sorted(p.name for p in (tmp_path / "xla").iterdir()) == entries
+    assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "xla").rglob("*")) == entries
 
 
 def test_cache_off_and_unusable_folder(tmp_path, monkeypatch):
