@@ -106,14 +106,18 @@ def _environment_digest() -> str:
 
 
 def _cpu_model() -> str:
+    """The first processor's model name and feature flags (XLA compiles for the host's)."""
+    lines = []
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
+                if not line.strip():
+                    break
                 if line.startswith(("model name", "flags")):
-                    return line
+                    lines.append(line)
     except OSError:
         pass
-    return platform.machine()
+    return "".join(lines) or platform.machine()
 
 
 def _placement(x) -> str:
