@@ -100,7 +100,6 @@ def _environment_digest() -> str:
         except importlib.metadata.PackageNotFoundError:
             version = "-"
         h.update(f"{name}={version};".encode())
-    h.update(platform.processor().encode())
     h.update(_cpu_model().encode())
     return h.hexdigest()
 

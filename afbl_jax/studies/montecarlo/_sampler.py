@@ -705,7 +705,7 @@ def _sample_index(
 
 def _draw_index(distribution: Distribution, index: np.ndarray, seed: int) -> CaseBatch:
     keys = case_keys(seed, index)
-    scenario, vehicle, inputs = _batch_sampler(distribution)(keys)
+    scenario, vehicle, inputs = _batch_sampler(keys, distribution)
     unmodeled = None
     if distribution.spec["unmodeled"]["enabled"]:
         group_keys = case_keys(seed, (index // GROUP_SIZE) * GROUP_SIZE)
@@ -1001,11 +1001,6 @@ def _sample_keys(keys, distribution: Distribution):
     return _batched_cases(variates, spec, tables, edges, omega, references)
 
 
-_batch_sampler_jit = CachedJit(_sample_keys, "sampler")
+_batch_sampler = CachedJit(_sample_keys, "sampler")
 """`_sample_keys` compiled per distribution and batch size (its executables kept between
 processes where `afbl_jax.configure_compilation_cache` keeps them)."""
-
-
-def _batch_sampler(distribution: Distribution):
-    """The jitted keys -> (scenario, vehicle, inputs) sampler of one distribution."""
-    return lambda keys: _batch_sampler_jit(keys, distribution)

@@ -73,10 +73,11 @@ class StudyConfig:
 PHASES = ("startup", "compilation", "runs", "report")
 """Phases of an invocation in ``phases_seconds`` (see the module docstring), then ``total``."""
 
+_BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 _COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_trace_duration",
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
-    "/jax/core/compile/backend_compile_duration",
+    _BACKEND_COMPILE_EVENT,
     EXECUTABLE_LOAD_EVENT,
 )
 """JAX's events of tracing, lowering and XLA compilation (or loading from the cache), and the
@@ -104,7 +105,7 @@ class CompileClock:
             with self._lock:
                 self._spans.append((start, end))
                 loaded = event == EXECUTABLE_LOAD_EVENT
-                self.programs += loaded or event == "/jax/core/compile/backend_compile_duration"
+                self.programs += loaded or event == _BACKEND_COMPILE_EVENT
                 self.executables_loaded += loaded
 
     def record_event(self, event: str, **kwargs) -> None:
