@@ -67,8 +67,41 @@ def test_every_study_script_is_tested():
         "rare_failures.py",
         "dask_scaling.py",  # tests/integration/test_dask.py
         "test_times.py",
+        "turbulence_band.py",
     }
     assert {p.name for p in STUDIES.glob("*.py")} == tested
+
+
+def test_turbulence_band_script_rejects_bad_input(tmp_path):
+    r = _run("turbulence_band.py", "--cases", "0", "--out", str(tmp_path / "b"))
+    assert r.returncode == 2 and "--cases must be >= 1" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "b").exists()
+
+
+@pytest.mark.slow
+def test_turbulence_band_script(tmp_path):
+    """Both runs on 8 cases (two fresh compilations, hence slow): the cutoff keeps fewer lines,
+    most of the variance, and every case's status; the ISE differences are those of the two
+    runs' results files, recomputed here."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    out = tmp_path / "b"
+    r = _run("turbulence_band.py", "--cases", "8", "--out", str(out), "--no-progress")
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((out / "turbulence_band.json").read_text())
+    v = doc["variants"]
+    assert v["cutoff"]["lines"] < v["all_lines"]["lines"] == 64
+    assert v["cutoff"]["top_line_rad_s"] <= 100.0 < v["all_lines"]["top_line_rad_s"]
+    assert all(0.99 < k["total"] <= 1.0 for k in doc["variance_kept"].values())
+    cut, full = (pq.read_table(out / k / "results.parquet").to_pandas() for k in v)
+    for c, e in doc["ise_relative_difference"].items():
+        a = cut[cut.controller == c].sort_values("case")
+        b = full[full.controller == c].sort_values("case")
+        ok = (a.status.values == "ok") & (b.status.values == "ok")
+        rel = np.abs(a.ise_attitude.values[ok] / b.ise_attitude.values[ok] - 1)
+        assert e["ise_attitude"]["max"] == pytest.approx(rel.max(), rel=1e-12)
+        assert e["status_changed"] == int(np.sum(a.status.values != b.status.values))
 
 
 def test_test_times_script(tmp_path):

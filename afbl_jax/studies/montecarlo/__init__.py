@@ -8,6 +8,7 @@ from ._distribution import POSITION_PROFILES as POSITION_PROFILES
 from ._distribution import Distribution as Distribution
 from ._distribution import default_distribution as default_distribution
 from ._distribution import load_distribution as load_distribution
+from ._distribution import turbulence_lines as turbulence_lines
 from ._report import format_summary as format_summary
 from ._report import rare_sections as rare_sections
 from ._report import summarize as summarize

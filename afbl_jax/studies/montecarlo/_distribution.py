@@ -16,8 +16,15 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ...model import AERODYNAMIC_MODELS
-from ...scenario import ROUGHNESS_LENGTH, TURBULENCE_INTENSITIES
+from ...scenario import (
+    ROUGHNESS_LENGTH,
+    TURBULENCE_INTENSITIES,
+    turbulence_edges,
+    turbulence_grid,
+)
 
 MEAN_WIND_CAP = 8.0
 """Top of the default mean-wind speed range [m/s] at the turbulence altitude: below the flight
@@ -109,7 +116,10 @@ DEFAULT_DISTRIBUTION: dict = {
         "altitude": 10.0,  # [m] of the turbulence and of the mean wind
         "n_frequencies": 64,
         "omega_min": 0.0005,  # [rad/s]
-        "omega_max": 300.0,  # [rad/s]
+        "omega_max": 300.0,  # [rad/s], top of the log-spaced grid of n_frequencies cells
+        # [rad/s]: lines above it are left out (phases still drawn for all n_frequencies, so a
+        # case keeps its lines below); 100 rad/s is well past the attitude loop's bandwidth
+        "omega_cutoff": 100.0,
     },
     "initial": {  # perturbation added to the start (trimmed or at rest)
         "attitude": [0.0, 0.0],  # phi, theta, psi at t0 [rad]
@@ -204,6 +214,7 @@ _POSITIVE_KEYS = {
     ("turbulence", "altitude"),
     ("turbulence", "omega_min"),
     ("turbulence", "omega_max"),
+    ("turbulence", "omega_cutoff"),
     ("time", "t1"),
 }
 _INT_KEYS = {("turbulence", "n_frequencies")}
@@ -213,6 +224,16 @@ _INTERVAL_KEYS = {
     ("envelope", "tilt"): (0.0, math.pi / 2, False),
     ("envelope", "rotor_reserve"): (0.0, 1.0, True),
 }
+
+
+def turbulence_lines(turb: dict):
+    """The turbulence lines a ``[turbulence]`` section realises: (omega_k [rad/s] of the lines
+    at or below ``omega_cutoff``, their K + 1 cell edges [rad/s]); the grid is
+    `turbulence_grid` over [omega_min, omega_max] in ``n_frequencies`` cells."""
+    omega, _ = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    edges = turbulence_edges(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    keep = int(np.sum(omega <= turb["omega_cutoff"]))
+    return omega[:keep], edges[: keep + 1]
 
 
 def _is_number(x) -> bool:
@@ -325,6 +346,12 @@ class Distribution:
         turb = self.spec["turbulence"]
         if turb["omega_min"] >= turb["omega_max"]:
             raise ValueError(f"{self.source}: turbulence.omega_min must be < omega_max.")
+        lowest = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])[0][0]
+        if turb["omega_cutoff"] < lowest:
+            raise ValueError(
+                f"{self.source}: turbulence.omega_cutoff {turb['omega_cutoff']} rad/s leaves no "
+                f"line; the lowest line is at {lowest:.4g} rad/s."
+            )
         if turb["altitude"] <= ROUGHNESS_LENGTH:
             raise ValueError(
                 f"{self.source}: turbulence.altitude must exceed the wind profile's roughness "

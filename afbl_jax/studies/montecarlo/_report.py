@@ -360,12 +360,14 @@ def replay_worst(
     if not cases:
         return {}
     size = chunk_size if chunk_size is not None and chunk_size >= len(cases) else None
-    batch = sample_cases_at(distribution, cases, seed, size=size)
+    # one transfer to the host; the rows are then numpy slices, not small device programs
+    batch = jax.device_get(sample_cases_at(distribution, cases, seed, size=size))
     cpu = jax.devices("cpu")[0]
+    arrays = jax.Array | np.ndarray | np.generic
     out = {}
     for i, case in enumerate(cases):
         scenario, vehicle, model, unmodeled, aerodynamics, position_loop, ctrls = jax.tree.map(
-            lambda x: jax.device_put(x, cpu) if isinstance(x, jax.Array) else x,
+            lambda x: jax.device_put(x, cpu) if isinstance(x, arrays) else x,
             (
                 *batch.case(i),
                 batch.unmodeled_case(i),

@@ -50,12 +50,15 @@ from ...scenario import (
     paper_reference,
     start_at_trim,
     trim_conditions,
-    turbulence_edges,
-    turbulence_grid,
     w20,
 )
 from ...sim import CachedJit
-from ._distribution import ATTITUDE_PROFILES, POSITION_PROFILES, Distribution
+from ._distribution import (
+    ATTITUDE_PROFILES,
+    POSITION_PROFILES,
+    Distribution,
+    turbulence_lines,
+)
 
 GROUP_SIZE = 4
 """Cases per drawn control rate (digital control: the cases of a block of `GROUP_SIZE`
@@ -124,7 +127,8 @@ x towards y; 0 speed when ``[mean_wind]`` is off); ``turbulence_airspeed`` [m/s]
 frozen Dryden field (the case's mean airspeed: the mean-wind speed holding position, 0
 drifting with the air; at least ``turbulence.min_airspeed``); ``turbulence_sigma_u/v/w`` are
 the standard's intensities sigma [m/s] and ``turbulence_rms_u/v/w`` the RMS the sum of sinusoids
-realises (the band [omega_min, omega_max] leaves out the rest of sigma^2); u, v, w are along the
+realises (the lines of `turbulence_lines`, from omega_min up to omega_cutoff, leave out
+the rest of sigma^2); u, v, w are along the
 mean wind, across it and vertical. ``gust_amplitude_x/y/z`` [m/s] are the gust's earth-frame
 components after build-up (``gust_buildup_x/y/z`` [s] are the build-up times of its u, v, w
 components), ``gust_speed`` = |gust amplitude vector| [m/s], ``gust_sigma_multiple`` the
@@ -501,7 +505,7 @@ def _case_parts(v: dict, spec: dict, tables, edges, omega, references):
 
     # Dryden turbulence (u, v, w) realised as sinusoids, rotated into the earth frame
     t_amp = dryden_band_amplitudes(edges, sigma, scale, airspeed)
-    phase = _scaled(v["turbulence_phase"], (0.0, 2.0 * jnp.pi)).reshape(3, len(omega))
+    phase = _scaled(v["turbulence_phase"], (0.0, 2.0 * jnp.pi)).reshape(3, -1)[:, : len(omega)]
     for j, ax in enumerate("uvw"):
         inputs[f"turbulence_sigma_{ax}"] = sigma[j]
         inputs[f"turbulence_rms_{ax}"] = jnp.sqrt(0.5 * jnp.sum(t_amp[j] ** 2))
@@ -970,8 +974,7 @@ def _sampler_tables(distribution: Distribution):
     """Turbulence tables, band edges and frequencies, and the references of a distribution."""
     spec = distribution.spec
     turb = spec["turbulence"]
-    omega, _ = turbulence_grid(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
-    edges = turbulence_edges(turb["n_frequencies"], turb["omega_min"], turb["omega_max"])
+    omega, edges = turbulence_lines(turb)
     levels = [dryden_low_altitude(name, turb["altitude"]) for name in TURBULENCE_INTENSITIES]
     light_sigma, _ = dryden_low_altitude("light", turb["altitude"])
     tables = (
