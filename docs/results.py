@@ -408,6 +408,48 @@ def render_study_time(doc: dict) -> str:
     return _table(head, rows, "r" * len(head)) + "\n\n" + provenance_line(doc, load=True)
 
 
+def render_turbulence_band(doc: dict) -> str:
+    """`studies/turbulence_band.py`: lines, run time and solver steps of the default study with
+    the lines up to the cutoff and with every line; the variance the cutoff keeps; the
+    relative change of each case's ISE."""
+    band = _files(doc, "turbulence_band.json")
+    rows = [
+        [
+            "up to `omega_cutoff`" if key == "cutoff" else "every line of the grid",
+            str(v["lines"]),
+            f"{v['top_line_rad_s']:.1f}",
+            f"{v['runs_s']:.1f}",
+            ", ".join(f"{c} {s:.0f}" for c, s in v["median_solver_steps"].items()),
+        ]
+        for key, v in band["variants"].items()
+    ]
+    head = ["turbulence lines", "lines", "top line rad/s", "runs s", "median solver steps"]
+    out = [_table(head, rows, "lrrrl")]
+    rows = [
+        [ax, f"{100 * v['total']:.2f} %", f"{100 * v['least']:.2f} %"]
+        for ax, v in band["variance_kept"].items()
+    ]
+    out.append(_table(["axis", "variance kept, all cases", "least kept, one case"], rows))
+    rows = []
+    for c, e in band["ise_relative_difference"].items():
+        for metric in ("ise_attitude", "ise_altitude", "ise_position"):
+            d = e[metric]
+            rows.append(
+                [
+                    c,
+                    metric,
+                    f"{d['median']:.1e}",
+                    f"{d['p99']:.1e}",
+                    f"{d['max']:.1e}",
+                    f"{d['above_1e-3']}/{e['runs_ok_in_both']}",
+                    str(e["status_changed"]),
+                ]
+            )
+    head = ["controller", "metric", "median", "P99", "max", "cases > 1e-3", "status changed"]
+    out.append(_table(head, rows, "llrrrrr"))
+    return "\n\n".join(out) + "\n\n" + provenance_line(doc, load=True)
+
+
 def render_test_times(doc: dict) -> str:
     """Seconds per test file of the default test run (`studies/test_times.py`)."""
     t = _files(doc, "test_times.json")
@@ -446,6 +488,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "unmodeled-grid": render_unmodeled,
     "test-times": render_test_times,
     "study-time": render_study_time,
+    "turbulence-band": render_turbulence_band,
 }
 """Kind -> function of a result file's document (with its provenance) to Markdown."""
 

@@ -4,7 +4,8 @@ lines up to the cutoff and with every line of the grid, compared case by case.
     python studies/turbulence_band.py --cases 4096 --seed 0 --out results/band
 
 Prints the comparison (`afbl_jax.studies.turbulence_band`) and writes it to
-OUT/turbulence_band.json; the two runs' folders are OUT/cutoff and OUT/all_lines.
+OUT/turbulence_band.json; the two runs' folders are OUT/cutoff and OUT/all_lines. Runs as
+`afbl montecarlo` does: one XLA CPU device per core, the persistent compilation cache.
 """
 
 import argparse
@@ -25,6 +26,10 @@ def main() -> int:
     if args.out.exists() and any(args.out.iterdir()):
         p.exit(2, f"turbulence_band.py: error: --out {args.out} is not empty\n")
     print(f"turbulence band: {args.cases} cases, seed {args.seed} -> {args.out}", flush=True)
+    from afbl_jax.sim import configure_compilation_cache, configure_cpu_devices
+
+    configure_cpu_devices()  # one XLA CPU device per core, as `afbl montecarlo` runs
+    configure_compilation_cache()
     from afbl_jax.studies.turbulence_band import compare_turbulence_bands, format_turbulence_bands
 
     doc = compare_turbulence_bands(
