@@ -5,7 +5,8 @@ lines up to the cutoff and with every line of the grid, compared case by case.
 
 Prints the comparison (`afbl_jax.studies.turbulence_band`) and writes it to
 OUT/turbulence_band.json; the two runs' folders are OUT/cutoff and OUT/all_lines. Runs as
-`afbl montecarlo` does: one XLA CPU device per core, the persistent compilation cache.
+`afbl montecarlo` does: one XLA CPU device per core, the persistent compilation cache, x64
+enabled (float64 sampling; the solves are float32 as there).
 """
 
 import argparse
@@ -30,6 +31,9 @@ def main() -> int:
 
     configure_cpu_devices()  # one XLA CPU device per core, as `afbl montecarlo` runs
     configure_compilation_cache()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the cases drawn as the afbl command draws them
     from afbl_jax.studies.turbulence_band import compare_turbulence_bands, format_turbulence_bands
 
     doc = compare_turbulence_bands(
