@@ -31,6 +31,7 @@ import html
 import io
 import json
 import math
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -580,10 +581,13 @@ def write_report(
     summary: dict,
     distribution,
     meta: dict,
-    replays: dict | None = None,
+    replays: dict | Future | None = None,
     figures: bool = True,
 ) -> dict[str, Path]:
-    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html."""
+    """Write summary.json, report.md (+ figures/*.png) and a self-contained report.html.
+
+    ``replays``: `replay_worst`'s result, or a `concurrent.futures.Future` of it (the other
+    figures are drawn while it computes; its result is awaited for the worst-case figure)."""
     out = Path(out)
     atomic_write_text(summary_json(summary), out / "summary.json")
     figs: list[tuple[str, str, bytes]] = []
@@ -603,9 +607,13 @@ def write_report(
             makers.append(
                 ("failure_anatomy", "failure time by cause", lambda: figure_failure_anatomy(cols))
             )
-        if replays:
+        if replays is not None:
             makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
         for stem, title, make in makers:
+            if stem == "worst_cases" and isinstance(replays, Future):
+                replays = replays.result()
+            if stem == "worst_cases" and not replays:
+                continue
             data = _png(make())
             atomic_write_bytes(data, fig_dir / f"{stem}.png")
             figs.append((stem, title, data))

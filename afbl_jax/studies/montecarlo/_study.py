@@ -22,6 +22,7 @@ import json
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -318,16 +319,20 @@ def _summarize_and_report(out, table, controllers, distribution, seed, report, e
         settings = SolverSettings(**meta["config"]["settings"])
         n_cases = int(meta["config"]["n_cases"])
         if report:
-            replays = replay_worst(
-                cols,
-                controllers,
-                distribution,
-                seed,
-                k=min(5, n_cases),
-                settings=settings,
-                chunk_size=int(meta["config"]["chunk_size"]),
-            )
-            write_report(out, cols, summary, distribution, meta, replays)
+            # the replays (compiled solves, which release the GIL) run while the other
+            # figures are drawn
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                replays = pool.submit(
+                    replay_worst,
+                    cols,
+                    controllers,
+                    distribution,
+                    seed,
+                    k=min(5, n_cases),
+                    settings=settings,
+                    chunk_size=int(meta["config"]["chunk_size"]),
+                )
+                write_report(out, cols, summary, distribution, meta, replays)
         else:
             atomic_write_text(summary_json(summary), out / "summary.json")
     return summary, meta
