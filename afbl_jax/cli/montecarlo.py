@@ -3,6 +3,8 @@ of a multi-host run)."""
 
 from __future__ import annotations
 
+import importlib
+import threading
 from pathlib import Path
 
 from ._clock import since_start
@@ -220,6 +222,10 @@ def run(args) -> int:
         f"{executor_words(executor)}) -> {args.out}",
         flush=True,
     )
+    # the summary's and the report's imports, on the idle core while the first chunk's
+    # programs load or compile (single-threaded work)
+    preload = ["scipy.stats"] + ([] if args.no_report else ["matplotlib.pyplot"])
+    threading.Thread(target=_import_quietly, args=(preload,), daemon=True).start()
     run_study(
         StudyConfig(
             controllers,
@@ -239,6 +245,15 @@ def run(args) -> int:
         startup_seconds=since_start(),
     )
     return 0
+
+
+def _import_quietly(modules: list[str]) -> None:
+    """Import ``modules`` ahead of their first use (a failure shows where they are used)."""
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except Exception:  # the later import reports it
+            pass
 
 
 def run_rare(args, executor=None) -> int:
