@@ -650,7 +650,10 @@ def sample_cases(distribution: Distribution, n_cases: int, seed: int, start: int
     """Cases ``start, ..., start + n_cases - 1`` of the distribution for ``seed`` (in [0,
     2^63 - 1]; indices up to `MAX_CASE_INDEX`).
 
-    Case i uses its own key (`case_keys`) only, so it is the same in every batch.
+    Case i uses its own key (`case_keys`) only, so it is the same in every batch. The cases are
+    drawn in the precision JAX runs in: with ``jax_enable_x64`` (as the ``afbl`` command runs)
+    in float64, without it in float32, which draws slightly different cases (and can move a
+    case across the flight-envelope limits).
     """
     if isinstance(n_cases, bool) or int(n_cases) < 1:
         raise ValueError(f"n_cases must be an integer >= 1, got {n_cases!r}.")

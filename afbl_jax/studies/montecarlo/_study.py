@@ -44,7 +44,9 @@ class StudyConfig:
     Attributes:
         controllers: name -> controller (paired: every controller flies the same cases).
         out: output folder (created; running the same study there again resumes).
-        n_cases, seed: the cases (case i from ``fold_in(PRNGKey(seed), i)``).
+        n_cases, seed: the cases (case i from ``fold_in(PRNGKey(seed), i)``), drawn in
+            float64 when ``jax_enable_x64`` is on (as the ``afbl`` command runs), else in
+            float32 (other cases; meta.json records which).
         distribution: the case distribution (default `DEFAULT_DISTRIBUTION`).
         chunk_size: cases per compiled chunk and per chunk file (None: 1024 on CPU devices,
             16384 on an accelerator).
