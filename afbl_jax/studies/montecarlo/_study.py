@@ -301,6 +301,8 @@ def _finish(
     )
     meta["phases_seconds"] = phases
     with FileLock(out / FOLDER_LOCK):
+        # another run into the folder may have finished since the report read the log
+        meta["invocations"] = read_invocations(out)
         atomic_write_text(json.dumps(meta, indent=2) + "\n", out / "meta.json")
     if echo is not None:
         echo(format_summary(summary))
