@@ -607,16 +607,18 @@ def write_report(
             makers.append(
                 ("failure_anatomy", "failure time by cause", lambda: figure_failure_anatomy(cols))
             )
-        if replays is not None:
-            makers.append(("worst_cases", "five worst cases", lambda: figure_worst(replays)))
-        for stem, title, make in makers:
-            if stem == "worst_cases" and isinstance(replays, Future):
-                replays = replays.result()
-            if stem == "worst_cases" and not replays:
-                continue
+
+        def draw(stem: str, title: str, make) -> None:
             data = _png(make())
             atomic_write_bytes(data, fig_dir / f"{stem}.png")
             figs.append((stem, title, data))
+
+        for maker in makers:
+            draw(*maker)
+        if isinstance(replays, Future):  # the figures above were drawn while it computed
+            replays = replays.result()
+        if replays:
+            draw("worst_cases", "five worst cases", lambda: figure_worst(replays))
     cfg = meta.get("config", {})
     failed = _no_ok_runs(summary)
     intro = (
