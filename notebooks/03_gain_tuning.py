@@ -93,7 +93,17 @@ print("control rate [Hz]", np.asarray(cases.unmodeled.control_rate), "(one per g
 # w_div (1 + unsimulated fraction).
 
 # %%
-config = T.TuneConfig(controller="afbl", n_cases=4, steps=4, checkpoint_every=0, population=6)
+# tight solver tolerances: the central difference in section 2 then checks the gradient closely
+objective = T.ObjectiveConfig(rtol=1e-8, atol=1e-10)
+config = T.TuneConfig(
+    controller="afbl",
+    objective=objective,
+    n_cases=4,
+    steps=4,
+    checkpoint_every=0,
+    population=8,
+    sigma=0.1,
+)
 tuner = T.Tuner(config, cases=cases)
 z0 = tuner.space.init_z()  # the paper's gains: the box centre
 loss0, costs0 = tuner.loss_and_costs(z0)

@@ -447,7 +447,8 @@ def short_problem():
             "turbulence": {"n_frequencies": 4},
         }
     )
-    return rare.MarginProblem(A.AFBL(), dist, rtol=1e-8, atol=1e-10, n_save=51)
+    # the problem of notebook 04 (one compiled program for both)
+    return rare.MarginProblem(A.AFBL(), dist, attitude_limit=0.3, rtol=1e-8, atol=1e-10, n_save=51)
 
 
 def test_margin_gradient_matches_finite_differences(short_problem):
