@@ -38,6 +38,7 @@ chunks of the same size reuse the compiled program.
 from __future__ import annotations
 
 import functools
+import threading
 from typing import Literal
 
 import diffrax
@@ -251,10 +252,19 @@ _plain_run = eqx.filter_jit(_run)
 """`_run` jitted with XLA's defaults (and inside another jit, where options are refused)."""
 
 
-@functools.cache
-def _compiled_run(platform: str = "cpu"):
-    """`_run` jitted with `batch_compiler_options` of ``platform``."""
-    return CachedJit(_run, "simulate_batch", batch_compiler_options(platform))
+_compiled_runs: dict[str, CachedJit] = {}
+_compiled_runs_lock = threading.Lock()
+
+
+def _compiled_run(platform: str = "cpu") -> CachedJit:
+    """`_run` jitted with `batch_compiler_options` of ``platform`` (one per platform, also
+    when several threads ask at once)."""
+    with _compiled_runs_lock:
+        if platform not in _compiled_runs:
+            _compiled_runs[platform] = CachedJit(
+                _run, "simulate_batch", batch_compiler_options(platform)
+            )
+        return _compiled_runs[platform]
 
 
 def _leading(x) -> int | None:

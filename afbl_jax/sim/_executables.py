@@ -20,8 +20,10 @@ address), a call under a trace (inside ``jax.jit``, ``jax.grad``, ``jax.vmap``),
 with non-array outputs, and any backend but the CPU run as plain `equinox.filter_jit`. A
 program that calls back into Python (a host callback) is compiled but not kept. The kept
 programs stay out of JAX's persistent cache (an executable JAX loaded from there does not
-serialize whole). A file that cannot be read or loaded (another jaxlib, a truncated write) is
-compiled again and replaced.
+serialize whole; only the compiling thread's setting changes, so other threads' programs are
+written there as usual). A file that cannot be read or loaded (another jaxlib, a truncated
+write) is compiled again and replaced. Threads that make the same first call at once share one
+compilation.
 
 Runtime changes to module-level values of the package (monkeypatching) are not part of the
 key, so the cache is off unless `set_executable_cache` or `configure_compilation_cache` turns
@@ -42,6 +44,7 @@ import platform
 import re
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -49,6 +52,13 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import numpy as np
+
+try:  # JAX's setting as a per-thread context (other threads' compilations keep it)
+    from jax._src.config import (
+        persistent_cache_min_compile_time_secs as _min_compile_time,
+    )
+except ImportError:  # another jax: the global setting, one compilation at a time
+    _min_compile_time = None
 
 EXECUTABLES_SUBFOLDER = "executables"
 """Subfolder of the compilation-cache folder that holds the serialized executables."""
@@ -210,12 +220,14 @@ def _store(path: Path, compiled) -> None:
         return
 
 
-_hits = {"count": 0}
+_hits = threading.local()
+_global_setting = threading.Lock()
 
 
 def _count_hit(event: str, **_) -> None:
+    # JAX records the event in the thread that compiles
     if event == "/jax/compilation_cache/cache_hits":
-        _hits["count"] += 1
+        _hits.count = getattr(_hits, "count", 0) + 1
 
 
 @functools.cache
@@ -228,16 +240,22 @@ def _compile_fresh(lowered):
     cache. An executable that JAX loaded from its persistent cache serializes without its
     compiled functions (it loads, then fails to run), so the programs of this cache are kept
     out of JAX's cache (their module names are their own) and a compilation that JAX answered
-    from its cache all the same is not serialized."""
+    from its cache all the same is not serialized. Both hold for this thread's compilation
+    only: other threads may compile (and write JAX's cache) meanwhile."""
     _listen_for_hits()
-    before = _hits["count"]
-    minimum = jax.config.jax_persistent_cache_min_compile_time_secs
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
-    try:
-        compiled = lowered.compile()
-    finally:
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
-    return compiled, _hits["count"] == before
+    before = getattr(_hits, "count", 0)
+    if _min_compile_time is not None:
+        with _min_compile_time(float("inf")):
+            compiled = lowered.compile()
+    else:
+        with _global_setting:
+            minimum = jax.config.jax_persistent_cache_min_compile_time_secs
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
+            try:
+                compiled = lowered.compile()
+            finally:
+                jax.config.update("jax_persistent_cache_min_compile_time_secs", minimum)
+    return compiled, getattr(_hits, "count", 0) == before
 
 
 class CachedJit:
@@ -253,6 +271,12 @@ class CachedJit:
         self._options = dict(compiler_options or {})
         self._jit = eqx.filter_jit(fn, compiler_options=self._options or None)
         self._compiled: dict[str, object] = {}
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_lock = threading.Lock()
+
+    def _key_lock(self, key: str) -> threading.Lock:
+        with self._locks_lock:
+            return self._locks.setdefault(key, threading.Lock())
 
     def __call__(self, *args):
         folder = executable_cache_folder()
@@ -263,12 +287,14 @@ class CachedJit:
         if key is None:
             return self._jit(*args)
         if key not in self._compiled:
-            path = folder / f"{self._name}-{key[:40]}.exe"
-            start = time.time()
-            compiled = _load(path, jax.tree.structure(((dyn,), {})))
-            if compiled is not None:
-                jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
-            self._compiled[key] = compiled or self._compile(path, dyn, static)
+            with self._key_lock(key):  # a call from another thread compiles it once
+                if key not in self._compiled:
+                    path = folder / f"{self._name}-{key[:40]}.exe"
+                    start = time.time()
+                    compiled = _load(path, jax.tree.structure(((dyn,), {})))
+                    if compiled is not None:
+                        jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
+                    self._compiled[key] = compiled or self._compile(path, dyn, static)
         compiled = self._compiled[key]
         return self._jit(*args) if compiled is None else compiled(dyn)
 

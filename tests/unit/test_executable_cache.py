@@ -170,3 +170,70 @@ def test_a_new_process_loads_instead_of_tracing(tmp_path):
     assert second["traced"] == []
     assert first["x"] == second["x"] and np.allclose(first["x"], [0.1, 0.6])
     assert first["ise"] == second["ise"] and first["phi"] == second["phi"]
+
+
+def test_threads_calling_at_once_compile_once(folder):
+    """Several threads making the same first call share one compilation, one file and one
+    result (bitwise)."""
+    import threading
+
+    f = CachedJit(_poly, "poly")
+    x = np.linspace(0.0, 1.0, 9)
+    traces = []
+
+    def listen(event, *args, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            traces.append(kwargs.get("fun_name"))
+
+    start = threading.Barrier(4)
+    results = [None] * 4
+
+    def call(i):
+        start.wait()
+        results[i] = f(x, 2, 1.5)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        threads = [threading.Thread(target=call, args=(i,)) for i in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert traces.count("poly_executable") == 1
+    assert len(_files(folder)) == 1
+    for r in results:
+        assert np.array_equal(r["y"], 1.5 * x**2 + x.sum())
+
+
+def test_keeping_a_program_out_of_jax_cache_leaves_other_threads_setting():
+    """The compilation that `CachedJit` keeps out of JAX's persistent cache raises the cache's
+    minimum compile time for its own thread only: a program another thread compiles meanwhile
+    is written to JAX's cache as usual, and the setting is the same afterwards."""
+    import threading
+
+    from afbl_jax.sim import _executables
+
+    if _executables._min_compile_time is None:
+        pytest.skip("this jax has no per-thread setting (compilations are then serialised)")
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    seen = {}
+
+    class Lowered:
+        def compile(self):
+            seen["here"] = _executables._min_compile_time.value
+
+            def other():
+                seen["other"] = jax.config.jax_persistent_cache_min_compile_time_secs
+
+            t = threading.Thread(target=other)
+            t.start()
+            t.join()
+            return "compiled"
+
+    compiled, serializable = _executables._compile_fresh(Lowered())
+    assert compiled == "compiled" and serializable
+    assert seen["here"] == float("inf")
+    assert seen["other"] == before
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == before
