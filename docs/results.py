@@ -250,9 +250,10 @@ def render_bench_glance(doc: dict) -> str:
             r["dtype"],
             f"{r['sims_per_s']:.0f}",
             "-" if r.get("ratio_to_scipy") is None else f"{r['ratio_to_scipy']:.0f}x",
-            f"{r['max_rel_ise_error']:.1e}",
+            "-" if r.get("max_rel_ise_error") is None else f"{r['max_rel_ise_error']:.1e}",
         ]
         for r in _bench_rows(doc)
+        if r["strategy"] != "tuning_gradient"  # its own table: bench-gradient
     ]
     head = ["row", "N", "devices", "dtype", "sims/s", "x scipy loop", "max rel. ISE error"]
     return _table(head, rows, "lrrlrrr") + "\n\n" + provenance_line(doc)
@@ -274,12 +275,36 @@ def render_bench_table(doc: dict) -> str:
                 "-" if r.get("ratio_to_scipy") is None else f"{r['ratio_to_scipy']:.1f}",
                 f"{r['compile_s']:.1f}",
                 "-" if steps is None else str(steps),
-                f"{r['max_rel_ise_error']:.2e}",
+                "-" if r.get("max_rel_ise_error") is None else f"{r['max_rel_ise_error']:.2e}",
             ]
         )
     head = ["row", "N", "dev", "dtype", "rtol / atol", "sims/s", "x scipy", "compile s"]
     head += ["max steps", "max rel. ISE error"]
     return _table(head, rows, "lrrlrrrrrr") + "\n\n" + provenance_line(doc, load=True)
+
+
+def render_bench_gradient(doc: dict) -> str:
+    """The ``tuning_gradient`` rows of a benchmark result file: value-and-gradient against the
+    forward pass of the same training cases."""
+    rows = [
+        [
+            r["dtype"],
+            f"{r['rtol']:g} / {r['atol']:g}",
+            str(r["N"]),
+            f"{r['forward_s']:.2f}",
+            f"{r['gradient_s']:.2f}",
+            f"{r['gradient_to_forward']:.1f}x",
+            f"{r['gradient_to_forward_float32']:.1f}x",
+            f"{r['compile_s']:.1f}",
+            "-" if r["dtype"] == "float64" else f"{r['gradient_rel_error']:.1e}",
+        ]
+        for r in _bench_rows(doc)
+        if r["strategy"] == "tuning_gradient"
+    ]
+    head = ["dtype", "rtol / atol", "cases", "forward [s]", "value and gradient [s]"]
+    head += ["/ its forward", "/ float32 forward", "gradient compile s"]
+    head += ["float32 gradient error"]
+    return _table(head, rows, "llrrrrrrr") + "\n\n" + provenance_line(doc, load=True)
 
 
 def render_gradient_cost(doc: dict) -> str:
@@ -482,6 +507,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "reproduce-comparison": render_reproduce_comparison,
     "bench-glance": render_bench_glance,
     "bench-table": render_bench_table,
+    "bench-gradient": render_bench_gradient,
     "gradient-cost": render_gradient_cost,
     "tuning-optimizers": render_tuning_optimizers,
     "tuning-controllers": render_tuning_controllers,

@@ -17,8 +17,9 @@ def register(sub) -> None:
         "ensemble, the Monte-Carlo default (also on a realistic vehicle: full plant, 30 ms motor "
         "lag, 250 Hz digital control), and of the Monte-Carlo default distribution's own cases "
         "for afbl montecarlo's solve and a scipy solve_ivp loop of the same closed loop, with "
-        "compile time, memory and max relative ISE error vs an x64 reference. Writes "
-        "OUT/bench.json and OUT/bench.png.",
+        "compile time, memory and max relative ISE error vs an x64 reference; and the gain-"
+        "tuning objective's value-and-gradient against its forward pass (tuning_gradient). "
+        "Writes OUT/bench.json and OUT/bench.png.",
     )
     add_out(p)
     p.add_argument(
@@ -42,6 +43,12 @@ def register(sub) -> None:
         help="cases with a tight x64 reference (accuracy is measured on the first "
         "min(N, ref-cases) cases of each row)",
     )
+    p.add_argument(
+        "--gradient-cases",
+        type=int,
+        default=16,
+        help="training cases of the tuning_gradient rows",
+    )
     p.add_argument("--seed", type=seed, default=0, help="seed of the cases, in [0, 2^63 - 1]")
     p.set_defaults(func=run)
 
@@ -59,9 +66,11 @@ def run(args) -> int:
         raise UsageError(f"unknown strategies {unknown}; allowed: {', '.join(ALL_STRATEGIES)}.")
     if not sizes or min(sizes) <= 0:
         raise UsageError(f"--sizes must be positive integers, got {args.sizes!r}.")
-    if min(args.scipy_cases, args.scipy_montecarlo_cases, args.loop_cases, args.ref_cases) <= 0:
+    counts = (args.scipy_cases, args.scipy_montecarlo_cases, args.loop_cases, args.ref_cases)
+    if min(*counts, args.gradient_cases) <= 0:
         raise UsageError(
-            "--scipy-cases, --scipy-montecarlo-cases, --loop-cases, --ref-cases must be > 0."
+            "--scipy-cases, --scipy-montecarlo-cases, --loop-cases, --ref-cases, "
+            "--gradient-cases must be > 0."
         )
     check_out(args.out)
     from ..studies.bench import BenchConfig, format_rows, run_benchmark
@@ -76,6 +85,7 @@ def run(args) -> int:
             args.ref_cases,
             args.seed,
             scipy_montecarlo_cases=args.scipy_montecarlo_cases,
+            gradient_cases=args.gradient_cases,
         ),
         log=lambda s: print(s, flush=True),
     )

@@ -31,7 +31,8 @@ def plot_benchmark(rows: list[dict], path: Path, batch_rows=()) -> Path:
     ax.set_ylabel("throughput [simulations / s]")
     ax.set_title("AFBL, 20 s: uncertain step (solid), Monte-Carlo cases (dashed)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

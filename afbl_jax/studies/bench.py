@@ -53,6 +53,16 @@ Strategies (rows of bench.json):
   the case's jump times, stopped at the divergence limits), one case after the other on one
   core, on the first ``scipy_montecarlo_cases`` cases (sims/s does not depend on N). Its
   accuracy is measured against the same x64 reference as ``montecarlo_cases``.
+- ``tuning_gradient``: the gain-tuning objective (`afbl_jax.studies.tuning.TuneConfig`'s
+  default: AFBL, robust, its training cases) on ``gradient_cases`` cases: one value-and-gradient
+  (reverse mode) against one forward evaluation of the same cases, best of ``gradient_repeats``
+  after compiling, one row per precision (float32 at rtol 3e-6, atol 3e-7; float64 at rtol
+  1e-6, atol 1e-8; `afbl_jax.studies.tuning.gradient_cost`). sims/s: cases differentiated per
+  second; ``forward_s``, ``gradient_s``; ``gradient_to_forward``: the row's gradient over its
+  own forward pass; ``gradient_to_forward_float32``: over the float32 forward pass (the fast
+  forward pass); ``gradient_rel_error``: the float32 gradient's largest deviation from the
+  float64 one over the latter's largest entry (0 in the float64 row); no ISE error, no scipy
+  ratio (``max_rel_ise_error``, ``ratio_to_scipy`` None).
 
 Ratios (``ratio_to_scipy``, with the row it is taken against in ``ratio_baseline``): each row's
 sims/s over its own kind of baseline measured in the same run: the canonical rows over
@@ -92,7 +102,10 @@ from ..scenario import PulseDisturbance, Scenario, paper_scenario
 from ..sim import STATUS_OK, simulate, simulate_batch
 from .bench_rows import (
     ALL_STRATEGIES,
+    BATCH_ROWS,
     DEFAULT_SIZES,
+    GRADIENT_ROW,
+    LOOP_STRATEGIES,
     MONTECARLO_CASE_ROWS,
     MONTECARLO_SCIPY_ROW,
 )
@@ -609,6 +622,42 @@ def measure_scipy(draws: np.ndarray, ref: np.ndarray) -> dict:
     }
 
 
+def measure_tuning_gradient(n_cases: int, seed: int, repeats: int = 3, log=print) -> list[dict]:
+    """The ``tuning_gradient`` rows (module docstring): float32, then float64."""
+    from .tuning import TuneConfig, gradient_cost
+
+    rss0 = _rss_mb()
+    cost = gradient_cost(TuneConfig(n_cases=int(n_cases), seed=seed), repeats=repeats, log=log)
+    rows = []
+    for dtype in ("float32", "float64"):
+        d = cost[dtype]
+        rows.append(
+            {
+                "strategy": GRADIENT_ROW,
+                "N": cost["n_cases"],
+                "dtype": dtype,
+                "rtol": d["rtol"],
+                "atol": d["atol"],
+                "sims_per_s": cost["n_cases"] / d["gradient_s"],
+                "seconds": d["gradient_s"],
+                "compile_s": d["gradient_compile_s"],
+                "peak_rss_delta_mb": max(_rss_mb() - rss0, 0.0),
+                "max_rel_ise_error": None,
+                "n_ok": None,
+                "num_steps_max": None,
+                "devices": 1,
+                "forward_s": d["forward_s"],
+                "gradient_s": d["gradient_s"],
+                "gradient_to_forward": d["gradient_s"] / d["forward_s"],
+                "gradient_to_forward_float32": d["gradient_s"] / cost["float32"]["forward_s"],
+                "gradient_rel_error": (
+                    cost["float32_gradient_rel_error"] if dtype == "float32" else 0.0
+                ),
+            }
+        )
+    return rows
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     """What `run_benchmark` measures (see the module docstring).
@@ -623,6 +672,8 @@ class BenchConfig:
         montecarlo_ref_cases: cases of the Monte-Carlo rows with a tight x64 reference.
         scipy_montecarlo_cases: cases of the ``scipy_rk45_montecarlo_cases`` loop (at most
             ``montecarlo_ref_cases``; sims/s does not depend on N).
+        gradient_cases, gradient_repeats: training cases and timing repeats of the
+            ``tuning_gradient`` rows.
     """
 
     out: Path
@@ -634,6 +685,8 @@ class BenchConfig:
     seed: int = 0
     montecarlo_ref_cases: int = 64
     scipy_montecarlo_cases: int = 4
+    gradient_cases: int = 16
+    gradient_repeats: int = 3
 
 
 def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> list[dict]:
@@ -653,22 +706,29 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
     n_max = max(max(sizes), scipy_cases, loop_cases)
     scenarios, draws = bench_cases(n_max, seed)
     n_ref = max(min(n_max, ref_cases), scipy_cases, loop_cases)
-    log(f"reference: {n_ref} cases, x64 Dopri8 rtol 1e-10 ...")
-    ref = reference_ise(_index(scenarios, slice(0, n_ref)))
-    # independent check of the reference: per-case simulate, Dopri8 tight
-    k = min(4, n_max)
-    direct = np.array(
-        [
-            [float(r.ise_attitude), float(r.ise_altitude)]
-            for r in (
-                simulate(
-                    AFBL(), _index(scenarios, i), solver="dopri8", rtol=1e-10, atol=1e-12, n_save=0
+    ref, reference_check = None, None
+    if any(s in strategies for s in (*LOOP_STRATEGIES, *BATCH_ROWS)):
+        log(f"reference: {n_ref} cases, x64 Dopri8 rtol 1e-10 ...")
+        ref = reference_ise(_index(scenarios, slice(0, n_ref)))
+        # independent check of the reference: per-case simulate, Dopri8 tight
+        k = min(4, n_max)
+        direct = np.array(
+            [
+                [float(r.ise_attitude), float(r.ise_altitude)]
+                for r in (
+                    simulate(
+                        AFBL(),
+                        _index(scenarios, i),
+                        solver="dopri8",
+                        rtol=1e-10,
+                        atol=1e-12,
+                        n_save=0,
+                    )
+                    for i in range(k)
                 )
-                for i in range(k)
-            )
-        ]
-    )
-    reference_check = _rel_error(direct, ref[:k], np.ones(k, bool))
+            ]
+        )
+        reference_check = _rel_error(direct, ref[:k], np.ones(k, bool))
     ref_unmodeled = None
     if any(BATCH_STRATEGIES[s].get("unmodeled") for s in strategies if s in BATCH_STRATEGIES):
         log(f"reference of the realistic vehicle: {n_ref} cases, x64 Dopri8 rtol 1e-10 ...")
@@ -729,6 +789,11 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
                     f"  {rows[-1]['sims_per_s']:.1f} sims/s, err "
                     f"{rows[-1]['max_rel_ise_error']:.2e}"
                 )
+    if GRADIENT_ROW in strategies:
+        log(f"{GRADIENT_ROW} on {config.gradient_cases} training cases ...")
+        rows += measure_tuning_gradient(
+            config.gradient_cases, seed, config.gradient_repeats, log=lambda s: log("  " + s)
+        )
     # each row's ratio is to the scipy loop on its own kind of cases, measured in this run: the
     # canonical rows to scipy_rk45_loop, the Monte-Carlo case rows to scipy_rk45_montecarlo_cases
     # (to scipy_rk45_loop when that row is not measured)
@@ -737,6 +802,8 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
         baseline = "scipy_rk45_loop"
         if r["strategy"] in (MONTECARLO_SCIPY_ROW, *MONTECARLO_CASE_ROWS) and mc_scipy:
             baseline = MONTECARLO_SCIPY_ROW
+        if r["strategy"] == GRADIENT_ROW:
+            baseline = None  # not a simulation of the benchmark's cases
         r["ratio_baseline"] = baseline if baseline in speed else None
         r["ratio_to_scipy"] = r["sims_per_s"] / speed[baseline] if baseline in speed else None
     meta = run_metadata(
@@ -755,6 +822,8 @@ def run_benchmark(config: BenchConfig, log: Callable[[str], None] = print) -> li
             "scipy_montecarlo_cases": config.scipy_montecarlo_cases,
             "reference": REFERENCE,
             "reference_check_max_rel_error": reference_check,
+            "gradient_cases": config.gradient_cases,
+            "gradient_repeats": config.gradient_repeats,
         }
     )
     for r in rows:
@@ -774,10 +843,19 @@ def format_rows(rows: list[dict]) -> str:
     lines = [head]
     for r in rows:
         ratio = "-" if r["ratio_to_scipy"] is None else f"{r['ratio_to_scipy']:.1f}"
+        error = "-" if r["max_rel_ise_error"] is None else f"{r['max_rel_ise_error']:.2e}"
         lines.append(
             f"{r['strategy']:<34}{r['N']:>7}{r['devices']:>4}{r['dtype']:>9}"
             f"{r['sims_per_s']:>11.1f}"
             f"{ratio:>9}{r['compile_s']:>11.1f}{r['peak_rss_delta_mb']:>8.0f}"
-            f"{r['max_rel_ise_error']:>13.2e}"
+            f"{error:>13}"
         )
+    for r in rows:
+        if r["strategy"] == GRADIENT_ROW:
+            lines.append(
+                f"{GRADIENT_ROW} {r['dtype']}: value-and-gradient {r['gradient_s']:.2f} s = "
+                f"{r['gradient_to_forward']:.1f}x its forward pass ({r['forward_s']:.2f} s), "
+                f"{r['gradient_to_forward_float32']:.1f}x the float32 forward pass "
+                f"({r['N']} cases)"
+            )
     return "\n".join(lines)

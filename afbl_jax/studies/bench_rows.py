@@ -32,5 +32,15 @@ MONTECARLO_SCIPY_ROW = "scipy_rk45_montecarlo_cases"
 """The scipy baseline on the Monte-Carlo default distribution's own cases (`solve_ivp` with the
 NumPy closed loop of `afbl_jax.studies.numpy_loop`): the ratio of `MONTECARLO_CASE_ROWS`."""
 
-ALL_STRATEGIES = (*LOOP_STRATEGIES, *BATCH_ROWS, MONTECARLO_SCIPY_ROW, *MONTECARLO_CASE_ROWS)
+GRADIENT_ROW = "tuning_gradient"
+"""The gain-tuning objective's value-and-gradient against its forward pass on the same training
+cases (`afbl_jax.studies.tuning.gradient_cost`), one row per precision."""
+
+ALL_STRATEGIES = (
+    *LOOP_STRATEGIES,
+    *BATCH_ROWS,
+    MONTECARLO_SCIPY_ROW,
+    *MONTECARLO_CASE_ROWS,
+    GRADIENT_ROW,
+)
 """Every row, in the order they are measured."""

@@ -187,6 +187,68 @@ def test_bench_cli_smoke(tmp_path, capsys):
     assert "unknown strategies" in capsys.readouterr().err
 
 
+def _fake_gradient_cost(seen):
+    """`gradient_cost`'s output with given seconds (its measurement is tested on its own)."""
+
+    def cost(base, repeats=3, log=print):
+        seen.update(n_cases=base.n_cases, repeats=repeats, controller=base.controller)
+        log("float32: forward 0.500 s, value-and-gradient 2.000 s")
+        return {
+            "float32": {
+                "forward_s": 0.5,
+                "gradient_s": 2.0,
+                "rtol": 3e-6,
+                "atol": 3e-7,
+                "gradient_compile_s": 20.0,
+            },
+            "float64": {
+                "forward_s": 0.8,
+                "gradient_s": 4.0,
+                "rtol": 1e-6,
+                "atol": 1e-8,
+                "gradient_compile_s": 22.0,
+            },
+            "n_cases": base.n_cases,
+            "float32_gradient_rel_error": 3e-5,
+        }
+
+    return cost
+
+
+def test_bench_tuning_gradient_rows(tmp_path, capsys, monkeypatch):
+    """The tuning_gradient rows: one per precision, the ratios to each forward pass computed
+    from the measured seconds, no ISE error or scipy ratio invented for them, and no reference
+    of the canonical cases computed when no canonical row is asked for."""
+    from afbl_jax.studies import bench, tuning
+
+    seen = {}
+    monkeypatch.setattr(tuning, "gradient_cost", _fake_gradient_cost(seen))
+    monkeypatch.setattr(bench, "reference_ise", lambda *a, **k: pytest.fail("reference"))
+    out = tmp_path / "bench"
+    argv = ["bench", "--out", str(out), "--strategies", "tuning_gradient", "--sizes", "4"]
+    assert main([*argv, "--gradient-cases", "3"]) == 0
+    assert seen == {"n_cases": 3, "repeats": 3, "controller": "afbl"}
+    rows = json.loads((out / "bench.json").read_text())
+    assert [(r["strategy"], r["dtype"], r["N"]) for r in rows] == [
+        ("tuning_gradient", "float32", 3),
+        ("tuning_gradient", "float64", 3),
+    ]
+    f32, f64 = rows
+    assert f32["gradient_to_forward"] == pytest.approx(4.0)
+    assert f64["gradient_to_forward"] == pytest.approx(5.0)
+    assert f64["gradient_to_forward_float32"] == pytest.approx(8.0)
+    assert f32["sims_per_s"] == pytest.approx(1.5) and f64["compile_s"] == 22.0
+    assert f32["gradient_rel_error"] == 3e-5 and f64["gradient_rel_error"] == 0.0
+    for r in rows:
+        assert r["max_rel_ise_error"] is None and r["ratio_to_scipy"] is None
+        assert r["meta"]["config"]["gradient_cases"] == 3
+    printed = capsys.readouterr().out
+    assert "value-and-gradient 4.00 s = 5.0x its forward pass" in printed
+    assert "8.0x the float32 forward pass" in printed
+    assert main([*argv, "--gradient-cases", "0"]) == 2
+    assert "--gradient-cases must be > 0" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

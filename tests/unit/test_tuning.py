@@ -472,3 +472,20 @@ def test_tune_cli_time_budget_bounds_the_whole_command(tmp_path):
     back = load_gains(out / "gains.json")
     np.testing.assert_array_equal(back.k, make_controller("afbl").k)
     assert "time budget" in (out / "evaluation.txt").read_text()
+
+
+@pytest.mark.slow
+def test_gradient_cost_measures_both_precisions():
+    """`gradient_cost` on 2 training cases: compiled timings of both passes in both precisions,
+    a reverse pass costlier than the forward pass it differentiates, and a float32 gradient
+    within 1e-3 of the float64 one (relative to its largest entry)."""
+    from afbl_jax.studies.tuning import TuneConfig, gradient_cost
+
+    d = gradient_cost(TuneConfig(n_cases=2, seed=0), repeats=1, log=lambda s: None)
+    assert d["n_cases"] == 2
+    for dtype in ("float32", "float64"):
+        t = d[dtype]
+        assert 0 < t["forward_s"] < t["gradient_s"]
+        assert t["gradient_compile_s"] > 0
+    assert d["ratio_gradient64_to_forward32"] > 1
+    assert 0 < d["float32_gradient_rel_error"] < 1e-3

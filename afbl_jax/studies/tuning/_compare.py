@@ -142,20 +142,22 @@ def format_controllers(heldout: dict) -> str:
     return "\n".join(lines)
 
 
-def _best_of(fn, repeats: int) -> float:
-    best = float("inf")
+def _best_of(fn, repeats: int) -> tuple[float, object]:
+    """(best seconds of ``repeats`` calls of ``fn``, the last call's output)."""
+    best, value = float("inf"), None
     for _ in range(repeats):
         t = time.perf_counter()
-        jax.block_until_ready(fn())
+        value = jax.block_until_ready(fn())
         best = min(best, time.perf_counter() - t)
-    return best
+    return best, value
 
 
 def gradient_cost(base: TuneConfig, repeats: int = 3, log=print) -> dict:
     """Seconds (best of ``repeats``, after compiling) of one forward evaluation and one
     value-and-gradient of the objective on ``base``'s training cases, in float32 and float64,
-    and the float32 gradient's largest deviation from the float64 one relative to the
-    float64 gradient's largest entry."""
+    the seconds of the first value-and-gradient beyond a compiled one (its tracing and
+    compilation: ``gradient_compile_s``), and the float32 gradient's largest deviation from the
+    float64 one relative to the float64 gradient's largest entry."""
     out, grads = {}, {}
     cases = None
     for dtype, rtol, atol in (("float32", 3e-6, 3e-7), ("float64", 1e-6, 1e-8)):
@@ -163,14 +165,18 @@ def gradient_cost(base: TuneConfig, repeats: int = 3, log=print) -> dict:
         tuner = Tuner(dataclasses.replace(base, objective=obj), cases=cases)
         cases = tuner.cases
         z = tuner.space.init_z()
-        t_fwd = _best_of(lambda: tuner.loss_and_costs(z)[0], 1)  # compile
-        t_fwd = _best_of(lambda: tuner.loss_and_costs(z)[0], repeats)
-        _best_of(lambda: tuner.value_and_grad(z)[1], 1)  # compile
-        t_grad = _best_of(lambda: tuner.value_and_grad(z)[1], repeats)
-        grads[dtype] = np.concatenate(
-            [np.asarray(v) for v in jax.tree.leaves(tuner.value_and_grad(z)[1])]
-        )
-        out[dtype] = {"forward_s": t_fwd, "gradient_s": t_grad}
+        _best_of(lambda: tuner.loss_and_costs(z)[0], 1)  # compiled (or loaded)
+        t_fwd, _ = _best_of(lambda: tuner.loss_and_costs(z)[0], repeats)
+        first_grad, _ = _best_of(lambda: tuner.value_and_grad(z)[1], 1)
+        t_grad, grad = _best_of(lambda: tuner.value_and_grad(z)[1], repeats)
+        grads[dtype] = np.concatenate([np.asarray(v) for v in jax.tree.leaves(grad)])
+        out[dtype] = {
+            "forward_s": t_fwd,
+            "gradient_s": t_grad,
+            "rtol": rtol,
+            "atol": atol,
+            "gradient_compile_s": max(first_grad - t_grad, 0.0),
+        }
         log(f"{dtype}: forward {t_fwd:.3f} s, value-and-gradient {t_grad:.3f} s")
     g32, g64 = grads["float32"], grads["float64"]
     out["n_cases"] = int(cases.n_cases)
