@@ -816,9 +816,10 @@ class _ChunkJob:
         shard = self.worker_shard(size) if self.shard is None else self.shard
 
         def one(ctrl):
-            return run_chunk(
-                ctrl, chunk, strategy=self.strategy, settings=self.settings, shard=shard
-            )
+            with _precision(self.x64):  # a thread of the pool starts from JAX's global setting
+                return run_chunk(
+                    ctrl, chunk, strategy=self.strategy, settings=self.settings, shard=shard
+                )
 
         # one thread per controller: compiling a program and running a compiled one release
         # the GIL, so the first chunk compiles the controllers' programs side by side (on
@@ -830,6 +831,19 @@ class _ChunkJob:
                 futures = {n: pool.submit(one, ctrl) for n, ctrl in self.controllers.items()}
                 per = {n: f.result() for n, f in futures.items()}
         return _chunk_table(chunk, self.valid(c), per)
+
+
+@contextlib.contextmanager
+def _precision(x64: bool):
+    """JAX's 64-bit mode set to ``x64`` in this thread (unchanged where it already is)."""
+    if bool(jax.config.jax_enable_x64) == x64:
+        yield
+        return
+    enable_x64 = getattr(jax, "enable_x64", None)
+    if enable_x64 is None:  # an older jax
+        from jax.experimental import enable_x64
+    with enable_x64(x64):
+        yield
 
 
 def _now() -> str:
