@@ -750,25 +750,3 @@ def test_chunking_follows_the_platform():
     assert mc.default_chunk_size(gpu) == mc.ACCELERATOR_CHUNK_SIZE
     here = mc.CPU_CHUNK_SIZE if jax.local_devices()[0].platform == "cpu" else None
     assert mc.default_chunk_size() == (here or mc.ACCELERATOR_CHUNK_SIZE)
-
-
-def test_controller_threads_take_the_runs_precision():
-    """A chunk's controllers are solved in threads of their own, which start from JAX's global
-    64-bit setting: each thread runs in the precision the run was started in, also when that
-    was set for the calling thread only (`jax.enable_x64` as a context)."""
-    import threading
-
-    from afbl_jax.studies.montecarlo._runner import _precision
-
-    seen = {}
-
-    def solve(x64):
-        with _precision(x64):
-            seen[x64] = jnp.asarray(1.0).dtype
-
-    for x64 in (False, True):
-        thread = threading.Thread(target=solve, args=(x64,))
-        thread.start()
-        thread.join()
-    assert seen == {False: jnp.float32, True: jnp.float64}
-    assert bool(jax.config.jax_enable_x64)  # the global setting is left as it was

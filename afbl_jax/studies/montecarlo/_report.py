@@ -31,7 +31,7 @@ import html
 import io
 import json
 import math
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -365,51 +365,38 @@ def replay_worst(
     batch = jax.device_get(sample_cases_at(distribution, cases, seed, size=size))
     cpu = jax.devices("cpu")[0]
     arrays = jax.Array | np.ndarray | np.generic
-
-    def on_cpu(tree):
-        return jax.tree.map(lambda x: jax.device_put(x, cpu) if isinstance(x, arrays) else x, tree)
-
-    inputs = [
-        on_cpu(
+    out = {}
+    for i, case in enumerate(cases):
+        scenario, vehicle, model, unmodeled, aerodynamics, position_loop, ctrls = jax.tree.map(
+            lambda x: jax.device_put(x, cpu) if isinstance(x, arrays) else x,
             (
                 *batch.case(i),
                 batch.unmodeled_case(i),
                 batch.aerodynamics,
                 batch.position_loop,
-            )
+                controllers,
+            ),
         )
-        for i in range(len(cases))
-    ]
-
-    def replay(ctrl):
-        ctrl = on_cpu(ctrl)
-        runs = []
         with jax.default_device(cpu):
-            for scenario, vehicle, model, unmodeled, aerodynamics, position_loop in inputs:
-                runs.append(
-                    simulate(
-                        ctrl,
-                        scenario,
-                        vehicle,
-                        model,
-                        solver=settings.solver,
-                        rtol=settings.rtol,
-                        atol=settings.atol,
-                        n_save=801,
-                        max_steps=settings.max_steps,
-                        unmodeled=unmodeled,
-                        aerodynamics=aerodynamics,
-                        position_loop=position_loop,
-                        saving="dense",  # no host callback: the compiled replay is cached
-                    )
+            out[case] = {
+                name: simulate(
+                    ctrl,
+                    scenario,
+                    vehicle,
+                    model,
+                    solver=settings.solver,
+                    rtol=settings.rtol,
+                    atol=settings.atol,
+                    n_save=801,
+                    max_steps=settings.max_steps,
+                    unmodeled=unmodeled,
+                    aerodynamics=aerodynamics,
+                    position_loop=position_loop,
+                    saving="dense",  # no host callback: the compiled replay is cached
                 )
-        return runs
-
-    # one thread per controller: each compiles its own program (compiling and running release
-    # the GIL, and XLA's compilations overlap in part)
-    with ThreadPoolExecutor(max(1, len(controllers))) as pool:
-        runs = dict(zip(controllers, pool.map(replay, controllers.values())))
-    return {case: {name: runs[name][j] for name in controllers} for j, case in enumerate(cases)}
+                for name, ctrl in ctrls.items()
+            }
+    return out
 
 
 # ---------------------------------------------------------------- documents

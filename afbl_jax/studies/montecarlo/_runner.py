@@ -45,7 +45,6 @@ import json
 import os
 import socket
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -814,36 +813,13 @@ class _ChunkJob:
         size = simulated_size(self.valid(c), self.chunk_size, self.unit, self.n_chunks)
         chunk = sample_cases(self.distribution, size, self.seed, start=c * self.chunk_size)
         shard = self.worker_shard(size) if self.shard is None else self.shard
-
-        def one(ctrl):
-            with _precision(self.x64):  # a thread of the pool starts from JAX's global setting
-                return run_chunk(
-                    ctrl, chunk, strategy=self.strategy, settings=self.settings, shard=shard
-                )
-
-        # one thread per controller: compiling a program and running a compiled one release
-        # the GIL, so the first chunk compiles the controllers' programs side by side (on
-        # CPU devices XLA's compilations overlap in part); the numbers do not depend on it
-        if len(self.controllers) == 1:
-            per = {name: one(ctrl) for name, ctrl in self.controllers.items()}
-        else:
-            with ThreadPoolExecutor(len(self.controllers)) as pool:
-                futures = {n: pool.submit(one, ctrl) for n, ctrl in self.controllers.items()}
-                per = {n: f.result() for n, f in futures.items()}
+        per = {
+            name: run_chunk(
+                ctrl, chunk, strategy=self.strategy, settings=self.settings, shard=shard
+            )
+            for name, ctrl in self.controllers.items()
+        }
         return _chunk_table(chunk, self.valid(c), per)
-
-
-@contextlib.contextmanager
-def _precision(x64: bool):
-    """JAX's 64-bit mode set to ``x64`` in this thread (unchanged where it already is)."""
-    if bool(jax.config.jax_enable_x64) == x64:
-        yield
-        return
-    enable_x64 = getattr(jax, "enable_x64", None)
-    if enable_x64 is None:  # an older jax
-        from jax.experimental import enable_x64
-    with enable_x64(x64):
-        yield
 
 
 def _now() -> str:
