@@ -240,6 +240,11 @@ def _bench_rows(doc: dict) -> list[dict]:
     return _files(doc, "bench.json")
 
 
+GRADIENT_ROW = "tuning_gradient"
+"""The benchmark rows of the tuning gradient (``afbl_jax.studies.bench_rows.GRADIENT_ROW``):
+rendered by `render_bench_gradient`, not in the throughput tables."""
+
+
 def render_bench_glance(doc: dict) -> str:
     """Simulations per second of each benchmark row against the scipy loop (compact)."""
     rows = [
@@ -253,7 +258,7 @@ def render_bench_glance(doc: dict) -> str:
             "-" if r.get("max_rel_ise_error") is None else f"{r['max_rel_ise_error']:.1e}",
         ]
         for r in _bench_rows(doc)
-        if r["strategy"] != "tuning_gradient"  # its own table: bench-gradient
+        if r["strategy"] != GRADIENT_ROW  # its own table: bench-gradient
     ]
     head = ["row", "N", "devices", "dtype", "sims/s", "x scipy loop", "max rel. ISE error"]
     return _table(head, rows, "lrrlrrr") + "\n\n" + provenance_line(doc)
@@ -299,7 +304,7 @@ def render_bench_gradient(doc: dict) -> str:
             "-" if r["dtype"] == "float64" else f"{r['gradient_rel_error']:.1e}",
         ]
         for r in _bench_rows(doc)
-        if r["strategy"] == "tuning_gradient"
+        if r["strategy"] == GRADIENT_ROW
     ]
     head = ["dtype", "rtol / atol", "cases", "forward [s]", "value and gradient [s]"]
     head += ["/ its forward", "/ float32 forward", "gradient compile s"]

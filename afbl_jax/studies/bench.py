@@ -62,7 +62,8 @@ Strategies (rows of bench.json):
   own forward pass; ``gradient_to_forward_float32``: over the float32 forward pass (the fast
   forward pass); ``gradient_rel_error``: the float32 gradient's largest deviation from the
   float64 one over the latter's largest entry (0 in the float64 row); no ISE error, no scipy
-  ratio (``max_rel_ise_error``, ``ratio_to_scipy`` None).
+  ratio (``max_rel_ise_error``, ``ratio_to_scipy`` None). Both rows carry the peak-RSS growth
+  of the whole measurement (both precisions).
 
 Ratios (``ratio_to_scipy``, with the row it is taken against in ``ratio_baseline``): each row's
 sims/s over its own kind of baseline measured in the same run: the canonical rows over
