@@ -39,6 +39,50 @@ jax.devices()
 os.environ["AFBL_COMPILATION_CACHE"] = "off"
 
 
+# With AFBL_TEST_COMPILE_LOG naming a folder (`studies/test_times.py` sets it), each test
+# process appends one JSON line per test to WORKER.jsonl there: the seconds JAX spent tracing
+# and lowering, the XLA programs compiled (backend compilations less persistent-cache loads) and
+# the seconds of those compilations and loads (``compiled_1s``: the spans of 1 s or more, the
+# large programs), in this process (not in the subprocesses a test
+# starts: `afbl` commands, notebook kernels).
+_COMPILE_LOG = os.environ.get("AFBL_TEST_COMPILE_LOG")
+_JAX_SPANS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_lower_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "trace_lower_s",
+    "/jax/core/compile/backend_compile_duration": "xla_s",
+}
+_test_compiles: dict[str, float] = {}
+
+
+def _on_jax_span(event: str, seconds: float, **kwargs) -> None:
+    key = _JAX_SPANS.get(event)
+    if key is not None:
+        _test_compiles[key] = _test_compiles.get(key, 0.0) + seconds
+        if key == "xla_s":
+            _test_compiles["compiled"] = _test_compiles.get("compiled", 0) + 1
+            if seconds >= 1.0:
+                _test_compiles["compiled_1s"] = _test_compiles.get("compiled_1s", 0) + 1
+
+
+def _on_jax_event(event: str, **kwargs) -> None:
+    if event == "/jax/compilation_cache/cache_hits":  # a load, not a compilation
+        _test_compiles["compiled"] = _test_compiles.get("compiled", 0) - 1
+
+
+if _COMPILE_LOG:
+    jax.monitoring.register_event_duration_secs_listener(_on_jax_span)
+    jax.monitoring.register_event_listener(_on_jax_event)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        _test_compiles.clear()
+        yield
+        row = {"id": item.nodeid, **_test_compiles}
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(Path(_COMPILE_LOG) / f"{worker}.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
 def pytest_unconfigure(config):
     if _OWNS_SESSION_CACHE:
         shutil.rmtree(os.environ[_SESSION_CACHE], ignore_errors=True)
