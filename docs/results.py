@@ -483,37 +483,35 @@ def render_turbulence_band(doc: dict) -> str:
 def render_test_times(doc: dict) -> str:
     """Seconds per test file of the default test run (`studies/test_times.py`), with the JAX
     work of its test processes (tracing and lowering seconds, XLA programs compiled, those of
-    1 s or more, XLA seconds) where the file records it."""
+    1 s or more, XLA seconds) and the run's CPU time."""
     t = _files(doc, "test_times.json")
     files = t["files"]
-    jax_cols = all("xla_s" in r for r in files)
-    header = ["test file", "tests", "seconds"]
-    if jax_cols:
-        header += ["trace + lower s", "programs compiled", "of them >= 1 s", "XLA s"]
+    columns = {  # header -> the row's key, summed over the rows of a line
+        "tests": "tests",
+        "seconds": "seconds",
+        "trace + lower s": "trace_lower_s",
+        "programs compiled": "compiled",
+        "of them >= 1 s": "compiled_1s",
+        "XLA s": "xla_s",
+    }
 
     def cells(name, rows):
-        out = [name, str(sum(r["tests"] for r in rows)), f"{sum(r['seconds'] for r in rows):.0f}"]
-        if jax_cols:
-            out += [
-                f"{sum(r['trace_lower_s'] for r in rows):.0f}",
-                f"{sum(r['compiled'] for r in rows):.0f}",
-                f"{sum(r['compiled_1s'] for r in rows):.0f}",
-                f"{sum(r['xla_s'] for r in rows):.0f}",
-            ]
-        return out
+        return [name] + [f"{sum(r[key] for r in rows):.0f}" for key in columns.values()]
 
     table = [cells(f"`{r['file']}`", [r]) for r in files]
     table.append(cells("all files (worker time)", files))
     summary = (
         f"Wall time {t['wall_s']:.0f} s ({t['wall_s'] / 60:.1f} min): {t['passed']} passed, "
-        f"{t['failed']} failed, {t['skipped']} skipped."
+        f"{t['failed']} failed, {t['skipped']} skipped. CPU time of all its processes "
+        f"{t['cpu_s']:.0f} s, {t['cpu_s'] / t['wall_s']:.2f} cores busy on average."
     )
-    if "cpu_s" in t:
-        summary += (
-            f" CPU time of all its processes {t['cpu_s']:.0f} s, "
-            f"{t['cpu_s'] / t['wall_s']:.2f} cores busy on average."
-        )
-    return _table(header, table) + "\n\n" + summary + "\n\n" + provenance_line(doc, load=True)
+    return (
+        _table(["test file", *columns], table)
+        + "\n\n"
+        + summary
+        + "\n\n"
+        + provenance_line(doc, load=True)
+    )
 
 
 RENDERERS: dict[str, Callable[[dict], str]] = {

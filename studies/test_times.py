@@ -10,7 +10,7 @@ test processes' JAX events (``AFBL_TEST_COMPILE_LOG``, tests/conftest.py), the s
 tracing and lowering, the XLA programs compiled (persistent-cache loads not counted), those of
 them that took 1 s or more, and the XLA seconds; a test's subprocesses (`afbl` commands,
 notebook kernels) are not in these counts. Writes OUT (JSON: ``wall_s``, ``cpu_s`` (user and
-system seconds of every process of the run), ``exit_code``, ``passed``, ``failed``,
+system seconds of pytest and the processes it waited for), ``exit_code``, ``passed``, ``failed``,
 ``skipped``, ``files``: one row per file with ``file``, ``tests``, ``seconds``,
 ``trace_lower_s``, ``compiled``, ``compiled_1s`` and ``xla_s``, slowest first) and prints the
 table.
