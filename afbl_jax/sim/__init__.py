@@ -3,6 +3,7 @@ grouped ensembles on the lean loop or diffeqsolve, float32, chunks, devices), th
 enumeration, CPU devices, the compilation cache and the executable cache."""
 
 from ._batch import CPU_COMPILER_OPTIONS as CPU_COMPILER_OPTIONS
+from ._batch import FIRST_STEP as FIRST_STEP
 from ._batch import STRATEGIES as STRATEGIES
 from ._batch import batch_compiler_options as batch_compiler_options
 from ._batch import case_layout as case_layout

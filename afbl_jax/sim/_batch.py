@@ -64,6 +64,13 @@ from ._solve import get_solver, simulate
 
 STRATEGIES = ("vmap", "ensemble")
 """Batched-solving strategies accepted by `simulate_batch`."""
+FIRST_STEP = 1e-3
+"""First step [s] of every ensemble group (`simulate_batch`'s default ``dt0``). The step-size
+controller adapts from it as from any rejected or accepted step (a step too large is
+rejected and shrunk, one too small grows by up to a factor 10 per step), so it costs a case a
+few steps. diffrax's initial-step heuristic instead (``dt0=None``) evaluates the vector field
+twice before the first step, which puts a further copy of the closed loop into the compiled
+program."""
 
 
 def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrator) -> BatchMetrics:
@@ -88,7 +95,7 @@ def _vmap(part, fixed, n, solver, rtol, atol, dtype, max_steps, n_save, integrat
     return jax.vmap(one, axis_size=n)(part)
 
 
-def _ensemble(group_size, part, fixed, n, *rest, lanes=None) -> BatchMetrics:
+def _ensemble(group_size, part, fixed, n, *rest, lanes=None, dt0=None) -> BatchMetrics:
     return solve_group(
         part,
         fixed,
@@ -96,6 +103,7 @@ def _ensemble(group_size, part, fixed, n, *rest, lanes=None) -> BatchMetrics:
         *rest,
         group_size=None if group_size is None else min(group_size, n),
         lanes=lanes,
+        dt0=dt0,
     )
 
 
@@ -145,6 +153,7 @@ def _run(
     devices,
     integrator,
     work_queue=True,
+    dt0=None,
 ) -> BatchMetrics:
     """``part``: the leaves that differ between cases (leading axis n); ``fixed``: the leaves
     shared by every case (unbatched), so per-evaluation work on them is done once."""
@@ -167,7 +176,8 @@ def _run(
     def solve(p, fx):
         args = (p, fx, size, solver, rtol, atol, np.dtype(dtype), max_steps, n_save, integrator)
         if strategy == "ensemble":
-            return _ensemble(group_size, *args, lanes=chunk // group_size if queue else None)
+            lanes = chunk // group_size if queue else None
+            return _ensemble(group_size, *args, lanes=lanes, dt0=dt0)
         return _vmap(*args)
 
     def local(p, fx):
@@ -446,6 +456,7 @@ def simulate_batch(
     integrator: Literal["lean", "diffeqsolve"] = "lean",
     work_queue: bool = True,
     position_loop: PositionHold | None = None,
+    dt0: float | None = FIRST_STEP,
 ) -> BatchMetrics:
     """Simulate N cases in one compiled call; returns per-case `BatchMetrics`.
 
@@ -488,6 +499,10 @@ def simulate_batch(
             results are bitwise those of the chunks one after the other (False).
         position_loop: the outer position loop (`afbl_jax.model.PositionHold`, shared or
             batched: gains with leading axis N), as in `simulate`; None: none.
+        dt0: ``"ensemble"`` only: every group's first step [s] (default `FIRST_STEP`); None:
+            diffrax's initial-step heuristic (`diffrax.PIDController.init`). With digital
+            control and ``integrator="diffeqsolve"`` every sample interval starts with the
+            whole interval whatever ``dt0``.
 
     Never raises for failed or diverged cases; check ``status``.
     """
@@ -508,6 +523,8 @@ def simulate_batch(
     for name, v in (("chunk_size", chunk_size), ("group_size", group_size)):
         if v is not None and (isinstance(v, bool) or int(v) <= 0):
             raise ValueError(f"simulate_batch: {name} must be an integer > 0 or None, got {v!r}.")
+    if dt0 is not None and (isinstance(dt0, bool) or not float(dt0) > 0):
+        raise ValueError(f"simulate_batch: dt0 must be a step > 0 [s] or None, got {dt0!r}.")
     if integrator not in INTEGRATORS:
         raise ValueError(
             f"simulate_batch: unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}."
@@ -572,4 +589,5 @@ def simulate_batch(
         devices,
         integrator,
         bool(work_queue),
+        None if dt0 is None else float(dt0),
     )

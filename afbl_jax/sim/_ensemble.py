@@ -176,13 +176,16 @@ def solve_group(
     integrator="lean",
     group_size=None,
     lanes=None,
+    dt0=None,
 ) -> BatchMetrics:
     """The n cases of ``part`` ((ClosedLoop, CaseInputs) leaves with leading axis n, sharing
     ``fixed``: leaves equal for every case, unbatched, evaluated once per group) in groups of
     ``group_size`` consecutive cases (None: one group), each one ensemble; ``integrator``:
     one of `INTEGRATORS` (module docstring); ``lanes`` (``"lean"``, continuous control): groups
     advanced at a time, a finished group's lane taking the next group (`lean_loop`'s work
-    queue); None: all groups at once."""
+    queue); None: all groups at once. ``dt0``: every group's first step [s] (continuous
+    control; None: diffrax's initial-step heuristic); with digital control the diffeqsolve
+    integrator starts every sample interval with the whole interval, as before."""
     if integrator not in INTEGRATORS:
         raise ValueError(f"unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}.")
     g = n if group_size is None else int(group_size)
@@ -200,8 +203,8 @@ def solve_group(
         )(jumps)
         args = (part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save)
         if loop.digital:
-            return _lean_digital(*args)
-        return _lean_continuous(*args, lanes=lanes)
+            return _lean_digital(*args, dt0=dt0)
+        return _lean_continuous(*args, lanes=lanes, dt0=dt0)
 
     def one_group(p):
         state0 = _per_case(lambda lp, inp: lp.initial_state(inp, dtype), p, fixed, g)
@@ -213,26 +216,32 @@ def solve_group(
             norm=lambda y: ensemble_rms_norm(y[0]),
         )
         y0 = (state0, jnp.zeros((g,), dtype))
-        solve = _digital if loop.digital else _continuous
         args = (p, fixed, g, _field(p, fixed, g), stepsize, solver, t0, t1, y0, dtype)
-        return solve(*args, max_steps, n_save)
+        if loop.digital:
+            return _digital(*args, max_steps, n_save)
+        return _continuous(*args, max_steps, n_save, dt0)
 
     out = jax.vmap(one_group)(part_g)
     return jax.tree.map(lambda x: x.reshape(n, *x.shape[2:]), out)
 
 
-def _first_step(field, stepsize, solver, t0, t1, y0, args=None):
-    """diffrax's initial step-size heuristic (`diffrax.PIDController.init`; `diffeqsolve`
-    itself starts with 0.01 s, as its heuristic does not apply to the direction-wrapped term
-    it integrates), so that `diffeqsolve` starts with the step `lean_loop` starts with."""
+def _first_step(field, stepsize, solver, t0, t1, y0, dt0=None):
+    """The first step: ``dt0`` where given, else diffrax's initial step-size heuristic
+    (`diffrax.PIDController.init`; `diffeqsolve` itself starts with 0.01 s, as its heuristic
+    does not apply to the direction-wrapped term it integrates), so that `diffeqsolve` starts
+    with the step `lean_loop` starts with."""
+    if dt0 is not None:
+        return jnp.asarray(dt0, jnp.result_type(t0))
     term = diffrax.ODETerm(field)
     t_next, _ = stepsize.controller.init(
-        term, t0, t1, y0, None, args, solver.func, solver.error_order(term)
+        term, t0, t1, y0, None, None, solver.func, solver.error_order(term)
     )
     return t_next - t0
 
 
-def _continuous(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save):
+def _continuous(
+    part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_steps, n_save, dt0=None
+):
     subs = [diffrax.SubSaveAt(t1=True)]
     if n_save:
         ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_save, dtype=dtype)
@@ -253,7 +262,7 @@ def _continuous(part, fixed, n, field, stepsize, solver, t0, t1, y0, dtype, max_
         solver,
         t0,
         t1,
-        _first_step(field, stepsize, solver, t0, t1, y0),
+        _first_step(field, stepsize, solver, t0, t1, y0, dt0),
         y0,
         args=None,
         saveat=diffrax.SaveAt(subs=subs),
@@ -677,7 +686,7 @@ def _lean_start(part, fixed, n, dtype, n_save, G, store: bool = False):
 
 
 def _lean_continuous(
-    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save, lanes
+    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save, lanes, dt0
 ):
     """The ensemble on `lean_loop` (``lanes``: its work queue). After every accepted step: the
     divergence test (a diverged case is frozen from then on) and the states at the save times
@@ -726,6 +735,7 @@ def _lean_continuous(
         on_state=on_state,
         lanes=lanes,
         bridge_jumps=bridge_jumps(dtype),
+        dt0=dt0,
     )
     cases = out.extra
     if not n_save:
@@ -749,7 +759,7 @@ def _held_sample(t, k, e_prev, e_end, h, t0, max_samples, loop, inputs, qa, qb, 
 
 
 def _lean_digital(
-    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save
+    part, part_g, fixed, groups, controllers, solver, t0, t1, dtype, max_steps, n_save, dt0
 ):
     """Digital control on `lean_loop`: each group's steps land on its sample instants (its
     held command jumps there); a step ending on one runs the sample instant for the group's
@@ -861,6 +871,7 @@ def _lean_digital(
         on_state=on_state,
         boundary=lambda extra, inputs: interval_end(extra[1]),
         bridge_jumps=bridge_jumps(dtype),
+        dt0=dt0,
     )
     cases = out.extra[0]
     return _lean_result(out, cases, groups, dtype, cases.peaks[1] if n_save else None, part, fixed)

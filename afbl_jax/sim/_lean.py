@@ -327,11 +327,14 @@ def lean_loop(
     boundary: Callable | None = None,
     lanes: int | None = None,
     bridge_jumps: bool = False,
+    dt0: float | None = None,
 ) -> LoopOutcome:
     """Integrate the ensemble from t0 to t1 (module docstring). ``controllers``: one diffrax
     step-size controller per group (array leaves with leading axis G, e.g. built with
     `equinox.filter_vmap`); the first step of each group comes from its controller's
-    ``init`` (diffrax's initial-step heuristic for a PID controller). ``after_step`` None: no
+    ``init`` with ``dt0`` [s] (as `diffrax.diffeqsolve` passes its ``dt0``; None: diffrax's
+    initial-step heuristic for a PID controller, two more evaluations of the vector field, a
+    further copy of it in the compiled program). ``after_step`` None: no
     hook; its ``y1`` output None: the state is unchanged. ``lanes``: groups advanced at a time
     (a work queue, module docstring); None or >= G: all groups at once. ``bridge_jumps``
     (a first-same-as-last ``solver``, e.g. Tsit5): a step clipped onto a jump time ends one
@@ -353,12 +356,14 @@ def lean_loop(
     t1 = jnp.asarray(t1, t0.dtype)
     order = solver.error_order(diffrax.ODETerm(ensemble_field(group_field, inputs, groups)))
 
+    first = None if dt0 is None else jnp.asarray(dt0, t0.dtype)
+
     def init_group(controller, y, a, inp):
         term_g = diffrax.ODETerm(lambda t, yy, aa: group_field(t, yy, aa, inp))
-        return controller.init(term_g, t0, t1, y, None, a, solver.func, order)
+        return controller.init(term_g, t0, t1, y, first, a, solver.func, order)
 
     init_all = eqx.filter_vmap(init_group, in_axes=(eqx.if_array(0), -2, -2, 0))
-    if L == G:
+    if L == G or dt0 is not None:  # a given first step does not depend on the pool
         t_next, controller_state = init_all(controllers, groups.view(y0), groups.view(args), inputs)
     else:
         # L groups at a time, as the loop steps them: XLA's rounding of the initial-step

@@ -138,6 +138,22 @@ def test_simulate_batch_rejects_bad_input(cases):
         A.simulate_batch(ctrl, t1, strategy="ensemble")
     with pytest.raises(ValueError, match="rtol"):
         A.simulate_batch(ctrl, scenarios, rtol=0.0)
+    with pytest.raises(ValueError, match="dt0 must be a step > 0"):
+        A.simulate_batch(ctrl, scenarios, dt0=0.0)
+    with pytest.raises(ValueError, match="dt0 must be a step > 0"):
+        A.simulate(ctrl, _case(scenarios, 0), dt0=-1e-3)
+
+
+def test_first_step_is_adapted_from_in_a_few_steps(cases, tight_ensemble):
+    """The ensemble starts with ``dt0``: a first step 1000x smaller than `FIRST_STEP` costs a
+    handful of steps (the controller grows it by up to 10x per step) and changes the solution
+    only within the tolerance."""
+    small = A.simulate_batch(A.AFBL(), cases[0], strategy="ensemble", dt0=1e-6, **TIGHT)
+    assert A.sim.FIRST_STEP == 1e-3
+    assert np.all(np.asarray(small.status) == A.sim.STATUS_OK)
+    extra = np.asarray(small.num_steps) - np.asarray(tight_ensemble.num_steps)
+    assert np.all((extra >= 1) & (extra <= 8)), extra
+    np.testing.assert_allclose(_ise(small), _ise(tight_ensemble), rtol=1e-6)
 
 
 def test_chunked_ensemble_equals_unchunked(cases, tight_ensemble):
