@@ -206,7 +206,6 @@ def _continuous(
     max_steps,
     adjoint,
     dense: bool,
-    dt0=None,
 ) -> SimulationResult:
     dtype = jnp.result_type(float)
     sc = inputs.scenario
@@ -223,7 +222,7 @@ def _continuous(
         solver,
         sc.t0,
         sc.t1,
-        dt0,
+        None,
         y0,
         args=(inputs, None),
         saveat=saveat,
@@ -332,10 +331,10 @@ def _digital(
     return _result(loop, inputs, ts, traj, signals, final, t_final, status, tuple(nsteps))
 
 
-def _simulate_case(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense, dt0=None):
+def _simulate_case(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense):
     if loop.digital:
         return _digital(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint)
-    return _continuous(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense, dt0)
+    return _continuous(loop, inputs, solver, rtol, atol, n_save, max_steps, adjoint, dense)
 
 
 _simulate = CachedJit(_simulate_case, "simulate")
@@ -358,7 +357,6 @@ def simulate(
     aerodynamics: AbstractAerodynamics | str | None = None,
     position_loop: PositionHold | None = None,
     saving: str = "saveat",
-    dt0: float | None = None,
 ) -> SimulationResult:
     """Simulate one closed-loop case.
 
@@ -395,10 +393,6 @@ def simulate(
             ``max_steps`` steps (about 9 x the state size per step), for single solves such
             as replays and figures. Digital control samples its own way (no callback) and
             ignores the choice.
-        dt0: first step [s] of a continuous-control run; None (default): diffrax's
-            initial-step heuristic, which evaluates the vector field twice more and so
-            compiles a further copy of it (`afbl_jax.sim.FIRST_STEP` is the batched solves'
-            default). Digital control starts every sample interval with the whole interval.
 
     Never raises for a failed or diverged run (diffrax ``throw=False``); check ``status``.
     """
@@ -412,8 +406,6 @@ def simulate(
         raise ValueError(f"n_save must be >= 0 and max_steps > 0, got {n_save}, {max_steps}.")
     if saving not in SAVINGS:
         raise ValueError(f"saving must be one of {', '.join(SAVINGS)}, got {saving!r}.")
-    if dt0 is not None and (isinstance(dt0, bool) or not float(dt0) > 0):
-        raise ValueError(f"simulate: dt0 must be a step > 0 [s] or None, got {dt0!r}.")
     return _simulate(
         loop,
         CaseInputs(scenario, vehicle, model, limits),
@@ -424,7 +416,6 @@ def simulate(
         int(max_steps),
         adjoint or diffrax.RecursiveCheckpointAdjoint(),
         saving == "dense",
-        None if dt0 is None else float(dt0),
     )
 
 

@@ -352,7 +352,7 @@ def replay_worst(
     accelerator); the cases are drawn on the default device, as the run drew them."""
     import jax
 
-    from ...sim import FIRST_STEP, simulate
+    from ...sim import simulate
     from ._runner import SolverSettings
     from ._sampler import sample_cases_at
 
@@ -393,7 +393,6 @@ def replay_worst(
                     aerodynamics=aerodynamics,
                     position_loop=position_loop,
                     saving="dense",  # no host callback: the compiled replay is cached
-                    dt0=FIRST_STEP,  # no initial-step heuristic: a smaller program
                 )
                 for name, ctrl in ctrls.items()
             }
