@@ -183,9 +183,9 @@ def solve_group(
     ``group_size`` consecutive cases (None: one group), each one ensemble; ``integrator``:
     one of `INTEGRATORS` (module docstring); ``lanes`` (``"lean"``, continuous control): groups
     advanced at a time, a finished group's lane taking the next group (`lean_loop`'s work
-    queue); None: all groups at once. ``dt0``: every group's first step [s] (continuous
-    control; None: diffrax's initial-step heuristic); with digital control the diffeqsolve
-    integrator starts every sample interval with the whole interval, as before."""
+    queue); None: all groups at once. ``dt0``: every group's first step [s] (None: diffrax's
+    initial-step heuristic); with digital control the diffeqsolve integrator ignores it and
+    starts every sample interval with the whole interval."""
     if integrator not in INTEGRATORS:
         raise ValueError(f"unknown integrator {integrator!r}; allowed: {', '.join(INTEGRATORS)}.")
     g = n if group_size is None else int(group_size)
