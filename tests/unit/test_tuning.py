@@ -31,8 +31,10 @@ from afbl_jax.studies.tuning._objective import case_costs
 from afbl_jax.studies.tuning._optimize import (
     _costs,
     _costs_cotangent,
+    _on_devices,
     _value_and_grad,
     chunked_value_and_grad,
+    gradient_chunks,
 )
 from afbl_jax.studies.tuning._study import cvar, distribution_stats
 
@@ -127,8 +129,39 @@ def test_gradient_in_chunks_matches_central_differences(tuners, cases):
 
     np.testing.assert_allclose(float(value), f(z0), rtol=1e-12)
     _assert_matches_central_differences(grad, f, z0, seed=1)
+    # the chunks spread over two devices (here the one device twice: two threads, the same
+    # compiled programs): the same chunks summed in the same order, so the same gradient
+    device = jax.local_devices()[0]
+    (value2, _), grad2 = chunked_value_and_grad(
+        key, z0, many, tuner.reference, devices=[device, device]
+    )
+    assert float(value2) == float(value)
+    for k in grad:
+        np.testing.assert_array_equal(np.asarray(grad2[k]), np.asarray(grad[k]))
     with pytest.raises(ValueError, match="multiple of 4"):
         ObjectiveConfig(gradient_chunk=6)
+
+
+def test_gradient_chunks_cover_every_device():
+    """Cases per reverse pass: one pass where one device holds every case, else whole groups
+    of 4, at most the chunk, one chunk per device at least; work items land on the devices in
+    turn and come back in order."""
+    assert gradient_chunks(8, 32, 1) == 0  # one device, one pass
+    assert gradient_chunks(4, 32, 2) == 0  # one group: nothing to split
+    assert gradient_chunks(10, 8, 2) == 0  # not whole groups
+    assert gradient_chunks(8, 32, 2) == 4
+    assert gradient_chunks(16, 32, 2) == 8
+    assert gradient_chunks(12, 32, 2) == 8  # 8 + 4 (the last chunk filled up)
+    assert gradient_chunks(64, 8, 1) == 8 and gradient_chunks(64, 8, 2) == 8
+    assert gradient_chunks(256, 32, 16) == 16
+    seen = []
+
+    def work(item, device):
+        seen.append((item, device))
+        return item * 10
+
+    assert _on_devices(work, [0, 1, 2, 3, 4], ["a", "b"]) == [0, 10, 20, 30, 40]
+    assert sorted(seen) == [(0, "a"), (1, "b"), (2, "a"), (3, "b"), (4, "a")]
 
 
 @pytest.mark.slow

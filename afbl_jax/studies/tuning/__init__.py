@@ -29,6 +29,8 @@ from ._optimize import TuneConfig as TuneConfig
 from ._optimize import Tuner as Tuner
 from ._optimize import TuneResult as TuneResult
 from ._optimize import abandoned_work as abandoned_work
+from ._optimize import chunked_value_and_grad as chunked_value_and_grad
+from ._optimize import gradient_chunks as gradient_chunks
 from ._optimize import make_optimizer as make_optimizer
 from ._optimize import tune as tune
 from ._study import TuningReport as TuningReport

@@ -39,6 +39,7 @@ import math
 import pickle
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -284,8 +285,8 @@ class Tuner:
         return objective_of_costs(costs, self.reference, self.config.objective), costs
 
     def value_and_grad(self, z: dict):
-        """((objective, CaseCosts), d objective / dz): one reverse pass over the cases, or, over
-        more than ``gradient_chunk`` cases, in chunks (`chunked_value_and_grad`)."""
+        """((objective, CaseCosts), d objective / dz): one reverse pass over the cases, or in
+        chunks spread over the local devices (`chunked_value_and_grad`)."""
         return chunked_value_and_grad(self.config.objective_key(), z, self.cases, self.reference)
 
     def population_losses(self, zs: np.ndarray) -> np.ndarray:
@@ -640,28 +641,64 @@ def _chunk_grad(config: TuneConfig, z, cases, cotangent):
     return jax.grad(fn)(z)
 
 
-def chunked_value_and_grad(config: TuneConfig, z, cases, ref):
+def gradient_chunks(n: int, chunk: int, n_devices: int) -> int:
+    """Cases per reverse pass of `chunked_value_and_grad` over ``n`` cases on ``n_devices``
+    devices: at most ``chunk``, and small enough that every device gets a chunk (whole ensemble
+    groups of `GROUP_SIZE`); 0: one reverse pass over all cases (one device and ``n <=
+    chunk``, or ``n`` not a multiple of `GROUP_SIZE`)."""
+    if n % GROUP_SIZE or (n <= chunk and (n_devices < 2 or n < 2 * GROUP_SIZE)):
+        return 0
+    return min(chunk, GROUP_SIZE * math.ceil(n / (GROUP_SIZE * n_devices)))
+
+
+def _on_devices(work, items, devices):
+    """``work(item, device)`` for every item, item i on ``devices[i % len(devices)]``; each
+    device's items one after the other in a thread of its own, so that the devices compute
+    at the same time (each CPU device runs its programs on the thread that calls them).
+    Returns the results in the order of ``items``."""
+    if len(devices) < 2:
+        return [work(item, devices[0]) for item in items]
+    lanes = [list(range(d, len(items), len(devices))) for d in range(len(devices))]
+
+    def lane(d):
+        return [(i, work(items[i], devices[d])) for i in lanes[d]]
+
+    with ThreadPoolExecutor(max_workers=len(devices)) as pool:
+        done = [r for rs in pool.map(lane, range(len(devices))) for r in rs]
+    return [r for _, r in sorted(done, key=lambda ir: ir[0])]
+
+
+def chunked_value_and_grad(config: TuneConfig, z, cases, ref, devices=None):
     """((objective, CaseCosts), d objective / dz) with the reverse pass over at most
-    ``config.objective.gradient_chunk`` cases at a time: a forward pass over every case, the
-    cotangent d objective / d costs (the objective is not a sum over cases: CVaR, limits),
-    then the sum over chunks of that cotangent's vector-Jacobian product through each chunk's
-    simulation. The same gradient as one reverse pass (each case's costs depend only on its
-    ensemble group, which a chunk keeps whole). One reverse pass when the cases fit one chunk
-    or their number is not a multiple of `GROUP_SIZE`. The last chunk is filled up with cases
-    from the start, their cotangents zero (one compiled program for every chunk)."""
-    n, chunk = cases.n_cases, config.objective.gradient_chunk
-    if n <= chunk or n % GROUP_SIZE:
+    ``config.objective.gradient_chunk`` cases at a time, spread over ``devices`` (default:
+    every local device; `gradient_chunks`): a forward pass over every case, the cotangent
+    d objective / d costs (the objective is not a sum over cases: CVaR, limits), then the sum
+    over chunks of that cotangent's vector-Jacobian product through each chunk's simulation,
+    the chunks of different devices computed at the same time (one thread per device). The
+    same gradient as one reverse pass (each case's costs depend only on its ensemble group,
+    which a chunk keeps whole), to round-off. One reverse pass when `gradient_chunks` says so.
+    The last chunk is filled up with cases from the start, their cotangents zero (one
+    compiled program for every chunk; compiled once per device)."""
+    devices = list(jax.local_devices() if devices is None else devices)
+    n = cases.n_cases
+    size = gradient_chunks(n, config.objective.gradient_chunk, len(devices))
+    if not size:
         return _value_and_grad(config, z, cases, ref)
     space = config.space()
     costs = _costs(config, space.log_gains(z), cases)
     value, cotangent = _costs_cotangent(config, costs, ref)
-    grad = None
-    for start in range(0, n, chunk):
-        idx = np.arange(start, start + chunk) % n
-        live = jnp.asarray(np.arange(start, start + chunk) < n)
+    starts = list(range(0, n, size))
+
+    def work(start, device):
+        idx = np.arange(start, start + size) % n
+        live = jnp.asarray(np.arange(start, start + size) < n)
         part = jax.tree.map(lambda c: jnp.where(live, c[idx], 0.0), cotangent)
-        g = _chunk_grad(config, z, cases.take(idx), part)
-        grad = g if grad is None else jax.tree.map(jnp.add, grad, g)
+        arrays, static = eqx.partition((z, cases.take(idx), part), eqx.is_array)
+        args = eqx.combine(jax.device_put(arrays, device), static)
+        return jax.device_get(_chunk_grad(config, *args))
+
+    grads = _on_devices(work, starts, devices[: len(starts)])
+    grad = jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
     return (value, costs), grad
 
 
