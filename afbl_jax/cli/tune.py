@@ -165,7 +165,8 @@ def add_tuning_args(p) -> None:
         type=int,
         default=32,
         help="most cases one reverse pass differentiates at a time (a multiple of 4): the "
-        "gradient's memory is bounded by the chunk, not the training set",
+        "gradient's memory is bounded by one chunk per device, not the training set; "
+        "with several devices, every device gets a chunk",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
 

@@ -224,7 +224,8 @@ class ObjectiveConfig:
             forward pass over all of them, the objective's derivative with respect to each
             case's costs, then the sum of the chunks' vector-Jacobian products: the same
             gradient, with the reverse pass's memory bounded by the chunk instead of growing
-            with the number of cases.
+            with the number of cases. With several local devices the cases are split into at
+            least one chunk per device, and the devices' chunks run at the same time.
     """
 
     objective: str = "robust"

@@ -644,8 +644,8 @@ def _chunk_grad(config: TuneConfig, z, cases, cotangent):
 def gradient_chunks(n: int, chunk: int, n_devices: int) -> int:
     """Cases per reverse pass of `chunked_value_and_grad` over ``n`` cases on ``n_devices``
     devices: at most ``chunk``, and small enough that every device gets a chunk (whole ensemble
-    groups of `GROUP_SIZE`); 0: one reverse pass over all cases (one device and ``n <=
-    chunk``, or ``n`` not a multiple of `GROUP_SIZE`)."""
+    groups of `GROUP_SIZE`); 0: one reverse pass over all cases (``n <= chunk`` on one device
+    or in one group, or ``n`` not a multiple of `GROUP_SIZE`)."""
     if n % GROUP_SIZE or (n <= chunk and (n_devices < 2 or n < 2 * GROUP_SIZE)):
         return 0
     return min(chunk, GROUP_SIZE * math.ceil(n / (GROUP_SIZE * n_devices)))
@@ -654,8 +654,8 @@ def gradient_chunks(n: int, chunk: int, n_devices: int) -> int:
 def _on_devices(work, items, devices):
     """``work(item, device)`` for every item, item i on ``devices[i % len(devices)]``; each
     device's items one after the other in a thread of its own, so that the devices compute
-    at the same time (each CPU device runs its programs on the thread that calls them).
-    Returns the results in the order of ``items``."""
+    at the same time (called from one thread, a CPU device's program runs after the
+    other's). Returns the results in the order of ``items``."""
     if len(devices) < 2:
         return [work(item, devices[0]) for item in items]
     lanes = [list(range(d, len(items), len(devices))) for d in range(len(devices))]
