@@ -196,6 +196,13 @@ class TuneConfig:
         return cls(**d)
 
 
+def strongly_typed(tree):
+    """``tree`` with every weakly typed array leaf (a Python scalar's type, which a jitted
+    function's output loses) given its dtype for good; other leaves unchanged. A state
+    passed to a jitted step keeps one abstract type from the first call on: no retracing."""
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype) if eqx.is_array(x) else x, tree)
+
+
 def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
     """The optax transformation of a gradient method (L-BFGS, also the hybrid's second phase,
     or Adam with guards)."""
@@ -318,7 +325,14 @@ class Tuner:
             if self.config.method == "hybrid":
                 state["lbfgs"] = None  # the L-BFGS state once CMA-ES has handed over
             return z, state
-        return z, self.optimizer.init(z)
+        return z, self._optimizer_init(z)
+
+    def _optimizer_init(self, z):
+        """The gradient method's initial state at z, its weakly typed leaves (optax's line
+        search starts its trial counter as a Python 0) made strongly typed, as the step
+        returns them: otherwise the jitted L-BFGS step, traced first with the initial state,
+        would be traced and compiled a second time in the second iteration."""
+        return strongly_typed(self.optimizer.init(z))
 
     def _row(self, step, z, loss, t, costs=None, grad_norm=math.nan, evaluations=0) -> dict:
         row = {
@@ -347,7 +361,7 @@ class Tuner:
                 return self._cma_iterate(z, state)
             if state["lbfgs"] is None:  # hand over: L-BFGS from the best candidate seen
                 z = _unflat(state["best"], self.space.names)
-                state["lbfgs"] = self.optimizer.init(z)
+                state["lbfgs"] = self._optimizer_init(z)
                 self._start = None
             z, state["lbfgs"], loss, gnorm, nev = self._lbfgs_iterate(z, state["lbfgs"])
             return z, state, loss, gnorm, nev
@@ -389,7 +403,7 @@ class Tuner:
             # below the last trial step
             rate = optax.tree_utils.tree_get(new_state, "learning_rate")
             state = optax.tree_utils.tree_set(
-                self.optimizer.init(z), learning_rate=rate * LS_DECREASE
+                self._optimizer_init(z), learning_rate=rate * LS_DECREASE
             )
             self._start = (value, grad)
             return z, state, float(value), gnorm, trials
@@ -410,7 +424,7 @@ class Tuner:
         z, state, *_ = self._iterate(z, copy.deepcopy(state))
         if self.config.method == "hybrid":
             self._start = None
-            z, *_ = self._lbfgs_iterate(z, self.optimizer.init(z))
+            z, *_ = self._lbfgs_iterate(z, self._optimizer_init(z))
         jax.block_until_ready(z)
         self._start = None
         self._estimate = None
