@@ -84,5 +84,6 @@ from .controllers import CONTROLLERS as CONTROLLERS
 from .controllers import FBLPID as FBLPID
 from .controllers import AbstractController as AbstractController
 from .controllers import AFBLPaper as AFBLPaper
+from .controllers import AnyController as AnyController
 from .controllers import ReferenceSample as ReferenceSample
 from .controllers import make_controller as make_controller

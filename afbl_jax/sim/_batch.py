@@ -569,7 +569,9 @@ def simulate_batch(
             None if chunk_size is None else int(chunk_size),
             None if group_size is None else int(group_size),
         )
-    part, fixed = _split_cases(loop, scenarios, vehicles, models, limits, axes, dtype)
+    part, fixed = _split_cases(
+        loop.shared_program(), scenarios, vehicles, models, limits, axes, dtype
+    )
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((part, fixed)))
     # compiler options apply to a top-level compilation only (not inside another jit)
     run = _plain_run if traced else _compiled_run(devices[0].platform)

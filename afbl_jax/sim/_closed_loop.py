@@ -36,6 +36,8 @@ integrands. Everything is a pure function of arrays (jit, vmap, grad).
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -50,6 +52,7 @@ from ..model import (
     AbstractController,
     AbstractPlant,
     AbstractSampling,
+    AnyController,
     ContinuousControl,
     InstantRotors,
     PaperPlant,
@@ -68,6 +71,7 @@ from ..model import (
     saturate_rotor_speeds_sq,
     virtual_input_for,
 )
+from ..model.controllers import LAWS
 from ..scenario import Scenario
 from ._status import STATUS_DIVERGED, STATUS_OK
 
@@ -184,6 +188,19 @@ class ClosedLoop(eqx.Module):
             unmodeled.sampling_model(),
             position_loop,
         )
+
+    def shared_program(self) -> ClosedLoop:
+        """This loop with its controller as an `AnyController` (the law's own operations), so
+        that the loops of every controller law compile to one program; unchanged where the
+        controller's gains are traced or batched (an enclosing program is the controller's own
+        anyway) or the controller is no law of `afbl_jax.model.controllers.LAWS`."""
+        ctrl = self.controller
+        if type(ctrl) not in LAWS:
+            return self
+        gains = [getattr(ctrl, g) for g in ctrl.gain_names]
+        if any(isinstance(g, jax.core.Tracer) or jnp.ndim(g) != 1 for g in gains):
+            return self
+        return dataclasses.replace(self, controller=AnyController.of(ctrl))
 
     @property
     def digital(self) -> bool:

@@ -407,7 +407,7 @@ def simulate(
     if saving not in SAVINGS:
         raise ValueError(f"saving must be one of {', '.join(SAVINGS)}, got {saving!r}.")
     return _simulate(
-        loop,
+        loop.shared_program(),
         CaseInputs(scenario, vehicle, model, limits),
         get_solver(solver),
         float(rtol),

@@ -1,5 +1,7 @@
 """Controllers: one interface (`AbstractController`), pure functions, states in the ODE."""
 
+from ._any import LAWS as LAWS
+from ._any import AnyController as AnyController
 from ._base import AbstractController as AbstractController
 from ._base import ReferenceSample as ReferenceSample
 from .afbl import AFBL as AFBL
