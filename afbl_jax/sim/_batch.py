@@ -317,9 +317,21 @@ def _batch_axes(
 
 
 def _cast(tree, dtype):
-    return jax.tree.map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x, tree
-    )
+    """Floating leaves cast to ``dtype``; concrete leaves on the host (NumPy rounds as XLA does),
+    so the cast compiles no small device program per leaf shape."""
+
+    def cast(x):
+        if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+            return x
+        c = concrete(x)
+        return x.astype(dtype) if c is None else c.astype(dtype, copy=False)
+
+    return jax.tree.map(cast, tree)
+
+
+def _first_row(x):
+    c = concrete(x)
+    return x[0] if c is None else c[0]
 
 
 def _partition_cases(args, batched_mask):
@@ -345,8 +357,8 @@ def _partition_cases(args, batched_mask):
             leaves[batched.index(True)] = True
             specs = jax.tree.unflatten(treedef, leaves)
     part, fixed = eqx.partition(args, specs)
-    fixed = jax.tree.map(
-        lambda x, b: x[0] if (b and x is not None) else x,
+    fixed = jax.tree.map(  # the first row: sliced on the host where concrete (no device program)
+        lambda x, b: _first_row(x) if (b and x is not None) else x,
         fixed,
         batched_mask,
         is_leaf=lambda x: x is None,
