@@ -113,3 +113,17 @@ def test_traced_or_batched_gains_keep_their_class():
     paper = A.AFBLPaper()
     law = jax.jit(lambda: ClosedLoop.make(paper).shared_program().controller.law)()
     assert int(law) == LAWS.index(A.AFBLPaper)
+
+
+def test_gains_of_another_dtype_are_kept():
+    """Float32 gains of a float64 run (cast past the classes' converters): every law of the
+    `AnyController` takes that dtype, and the run equals the law's own loop."""
+    sc = A.paper_scenario("uncertain", "step")
+    for name in ("fbl", "afbl"):
+        ctrl = jax.tree.map(lambda x: x.astype(jnp.float32), A.make_controller(name))
+        anyc = AnyController.of(ctrl)
+        assert {x.dtype for x in jax.tree.leaves(anyc.laws)} == {jnp.dtype(jnp.float32)}
+        r = A.simulate(ctrl, sc, n_save=0)
+        own = jax.jit(lambda c: A.simulate(c, sc, n_save=0).ise_attitude)(ctrl)
+        assert int(r.status) == 0
+        np.testing.assert_allclose(r.ise_attitude, own, rtol=1e-9)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,12 +82,15 @@ class AnyController(AbstractController):
             x = np.broadcast_to(np.asarray(x, dtype), shape)
             return jax.device_put(x, like.sharding) if committed else jnp.asarray(x)
 
-        laws = tuple(
-            controller
-            if law is type(controller)
-            else law(**{g: alike(x) for g, x in _paper_gains(law).items()})
-            for law in LAWS
-        )
+        # the other laws: the paper's gains, validated by the class, then set to exactly those
+        # arrays (the class's converter would give them the default float dtype)
+        def paper(law):
+            gains = {g: alike(x) for g, x in _paper_gains(law).items()}
+            return eqx.tree_at(
+                lambda c: [getattr(c, g) for g in gains], law(**gains), [*gains.values()]
+            )
+
+        laws = tuple(controller if law is type(controller) else paper(law) for law in LAWS)
         return cls(alike(LAWS.index(type(controller)), (), np.int32), laws)
 
     def acting(self) -> AbstractController:
