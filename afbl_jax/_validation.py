@@ -67,8 +67,25 @@ def check_last_dim(owner: str, name: str, x, size: int) -> None:
         )
 
 
-def as_float(x):
-    """``x`` as a JAX array of JAX's default float dtype (the converter of every float field)."""
+def _on_host(x, device_types) -> bool:
+    """Whether ``x`` (a number, array or nested sequence) holds no JAX array or tracer."""
+    if isinstance(x, list | tuple):
+        return all(_on_host(v, device_types) for v in x)
+    return not isinstance(x, device_types)
+
+
+def as_float(x, broadcast: int | None = None):
+    """``x`` as a JAX array of JAX's default float dtype (the converter of every float field);
+    with ``broadcast`` = n, a scalar becomes n equal entries. Host values (numbers, sequences,
+    NumPy arrays) are converted by NumPy and put on the default device, which runs no device
+    program; JAX arrays and tracers are converted by `jax.numpy`."""
+    import jax
     import jax.numpy as jnp
 
-    return jnp.asarray(x, dtype=jnp.result_type(float))
+    dtype = jnp.result_type(float)
+    host = _on_host(x, jax.Array | jax.core.Tracer)
+    xp = np if host else jnp
+    x = xp.asarray(x, dtype=dtype)
+    if broadcast is not None and x.ndim == 0:
+        x = xp.broadcast_to(x, (broadcast,))
+    return jax.device_put(x) if host else x

@@ -85,8 +85,7 @@ class AttitudeCommand(NamedTuple):
 
 
 def _as_pair(x) -> Array:
-    x = as_float(x)
-    return jnp.broadcast_to(x, (2,)) if x.ndim == 0 else x
+    return as_float(x, broadcast=2)
 
 
 def attitude_for_acceleration(acceleration, psi, g) -> Array:

@@ -243,19 +243,24 @@ CPU_COMPILER_OPTIONS: dict[str, object] = {
 @functools.cache
 def batch_compiler_options(platform: str = "cpu") -> dict[str, object]:
     """The XLA options `simulate_batch` compiles with on devices of ``platform``: on CPUs,
-    those of `CPU_COMPILER_OPTIONS` that this jax and XLA know (each checked once, on a
-    trivial program); on other platforms none (the options concern XLA's CPU backend)."""
+    those of `CPU_COMPILER_OPTIONS` that this jax and XLA know (checked once, on a trivial
+    program, all together and one by one where that fails); on other platforms none (the
+    options concern XLA's CPU backend)."""
     if platform != "cpu":
         return {}
-    known = {}
     x = jax.device_put(np.float32(0.0), jax.devices("cpu")[0])
-    for key, value in CPU_COMPILER_OPTIONS.items():
+
+    def compiles(options):
         try:
-            jax.jit(lambda x: x + 1, compiler_options={key: value})(x)
+            jax.jit(lambda x: x + 1, compiler_options=options)(x)
         except Exception:  # an option (or jit's compiler_options) this version does not have
-            continue
-        known[key] = value
-    return known
+            return False
+        return True
+
+    # all at once first (one trivial program), then one by one where that fails
+    if compiles(CPU_COMPILER_OPTIONS):
+        return dict(CPU_COMPILER_OPTIONS)
+    return {key: value for key, value in CPU_COMPILER_OPTIONS.items() if compiles({key: value})}
 
 
 _plain_run = eqx.filter_jit(_run)

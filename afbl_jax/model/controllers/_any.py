@@ -19,7 +19,6 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..._typing import Array, Vec4
@@ -80,7 +79,7 @@ class AnyController(AbstractController):
 
         def alike(x, shape=like.shape, dtype=like.dtype):
             x = np.broadcast_to(np.asarray(x, dtype), shape)
-            return jax.device_put(x, like.sharding) if committed else jnp.asarray(x)
+            return jax.device_put(x, like.sharding if committed else None)
 
         # the other laws: the paper's gains, validated by the class, then set to exactly those
         # arrays (the class's converter would give them the default float dtype)

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..._typing import Array, PlantState, Vec4
-from ..._validation import check_last_dim, check_positive
+from ..._validation import as_float, check_last_dim, check_positive
 from .._params import QuadrotorParams
 from .._plant import channel_values, feedback_linearize
 
@@ -31,8 +31,7 @@ class ReferenceSample(NamedTuple):
 
 def as_gain(x) -> Array:
     """Gains as float arrays; a scalar is broadcast to all four channels."""
-    x = jnp.asarray(x, dtype=jnp.result_type(float))
-    return jnp.broadcast_to(x, (4,)) if x.ndim == 0 else x
+    return as_float(x, broadcast=4)
 
 
 class AbstractController(eqx.Module):

@@ -634,8 +634,8 @@ def case_keys(seed: int, index) -> Array:
     i < 2^32 (`jax.random.fold_in` takes 32 bits), ``fold_in(fold_in(PRNGKey(seed), i mod 2^32),
     i // 2^32)`` for larger i, so indices that agree in their low 32 bits get different keys."""
     index = _case_index(index)
-    lo = jnp.asarray((index & 0xFFFFFFFF).astype(np.uint32))
-    hi = jnp.asarray((index >> 32).astype(np.uint32))
+    lo = jax.device_put((index & 0xFFFFFFFF).astype(np.uint32))
+    hi = jax.device_put((index >> 32).astype(np.uint32))
     return _keys(jax.random.PRNGKey(check_seed(seed)), lo, hi)
 
 
