@@ -438,6 +438,13 @@ def render_study_time(doc: dict) -> str:
     return _table(head, rows, "r" * len(head)) + "\n\n" + provenance_line(doc, load=True)
 
 
+def render_command_time(doc: dict) -> str:
+    """The wall time of a recorded command (``provenance.wall_s``), e.g. ``afbl --help``."""
+    wall = doc["provenance"].get("wall_s")
+    rows = [[f"`{doc['provenance']['command']}`", "-" if wall is None else f"{wall:.1f}"]]
+    return _table(["command", "wall s"], rows, "lr") + "\n\n" + provenance_line(doc, load=True)
+
+
 def render_turbulence_band(doc: dict) -> str:
     """`studies/turbulence_band.py`: lines, run time and solver steps of the default study with
     the lines up to the cutoff and with every line; the variance the cutoff keeps; the
@@ -529,6 +536,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "unmodeled-grid": render_unmodeled,
     "test-times": render_test_times,
     "study-time": render_study_time,
+    "command-time": render_command_time,
     "turbulence-band": render_turbulence_band,
 }
 """Kind -> function of a result file's document (with its provenance) to Markdown."""
