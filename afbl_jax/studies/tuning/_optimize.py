@@ -655,6 +655,29 @@ def _chunk_grad(config: TuneConfig, z, cases, cotangent):
     return jax.grad(fn)(z)
 
 
+@eqx.filter_jit
+def _chunk_forward(config: TuneConfig, z, cases):
+    """(CaseCosts of one chunk's cases, their vector-Jacobian product function): the chunk's
+    forward pass, whose residuals (the solver's checkpoints) its reverse pass `_chunk_pullback`
+    takes, so that the forward pass is not computed a second time."""
+
+    def fn(z):
+        space = config.space()
+        return case_costs(
+            space.controller_of(space.log_gains(z)), cases, config.objective, all_devices=False
+        )
+
+    return eqx.filter_vjp(fn, z)
+
+
+@eqx.filter_jit
+def _chunk_pullback(vjp_fn, cotangent):
+    """d/dz of sum_i <cotangent_i, costs_i(z)> over one chunk, from `_chunk_forward`'s
+    function (``cotangent``: an array for every inexact leaf of the costs, None elsewhere)."""
+    (grad,) = vjp_fn(cotangent)
+    return grad
+
+
 def gradient_chunks(n: int, chunk: int, n_devices: int) -> int:
     """Cases per reverse pass of `chunked_value_and_grad` over ``n`` cases on ``n_devices``
     devices: at most ``chunk``, and small enough that every device gets a chunk (whole ensemble
@@ -685,23 +708,29 @@ def _on_devices(work, items, devices):
 def chunked_value_and_grad(config: TuneConfig, z, cases, ref, devices=None):
     """((objective, CaseCosts), d objective / dz) with the reverse pass over at most
     ``config.objective.gradient_chunk`` cases at a time, spread over ``devices`` (default:
-    every local device; `gradient_chunks`): a forward pass over every case, the cotangent
+    every local device; `gradient_chunks`): the costs of every case, the cotangent
     d objective / d costs (the objective is not a sum over cases: CVaR, limits), then the sum
     over chunks of that cotangent's vector-Jacobian product through each chunk's simulation,
-    the chunks of different devices computed at the same time (one thread per device). The
-    same gradient as one reverse pass (each case's costs depend only on its ensemble group,
-    which a chunk keeps whole), to round-off. One reverse pass when `gradient_chunks` says so.
-    The last chunk is filled up with cases from the start, their cotangents zero (one
-    compiled program for every chunk; compiled once per device)."""
+    the chunks of different devices computed at the same time (one thread per device). With at
+    most one chunk per device, each chunk's forward pass gives its cases' costs and keeps its
+    residuals for its reverse pass (`_kept_forward_value_and_grad`), so every case is simulated
+    forward once; with more chunks, a forward pass over every case comes first and each chunk's
+    reverse pass computes its own forward pass again (memory bounded by the chunk). The same
+    gradient as one reverse pass (each case's costs depend only on its ensemble group, which a
+    chunk keeps whole), to round-off. One reverse pass when `gradient_chunks` says so. The last
+    chunk is filled up with cases from the start, their cotangents zero (one compiled program
+    for every chunk; compiled once per device)."""
     devices = list(jax.local_devices() if devices is None else devices)
     n = cases.n_cases
     size = gradient_chunks(n, config.objective.gradient_chunk, len(devices))
     if not size:
         return _value_and_grad(config, z, cases, ref)
+    starts = list(range(0, n, size))
+    if len(starts) <= len(devices):
+        return _kept_forward_value_and_grad(config, z, cases, ref, starts, size, devices)
     space = config.space()
     costs = _costs(config, space.log_gains(z), cases)
     value, cotangent = _costs_cotangent(config, costs, ref)
-    starts = list(range(0, n, size))
 
     def work(start, device):
         idx = np.arange(start, start + size) % n
@@ -712,6 +741,45 @@ def chunked_value_and_grad(config: TuneConfig, z, cases, ref, devices=None):
         return jax.device_get(_chunk_grad(config, *args))
 
     grads = _on_devices(work, starts, devices[: len(starts)])
+    grad = jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
+    return (value, costs), grad
+
+
+def _chunk_rows(start: int, size: int, n: int) -> tuple[np.ndarray, jax.Array]:
+    """Case indices of the chunk at ``start`` (filled up from the start past ``n``) and which
+    of them are its own (not filling)."""
+    return np.arange(start, start + size) % n, jnp.asarray(np.arange(start, start + size) < n)
+
+
+def _kept_forward_value_and_grad(config: TuneConfig, z, cases, ref, starts, size, devices):
+    """`chunked_value_and_grad` with at most one chunk per device: each device's chunk makes
+    its forward pass once and keeps its residuals for its reverse pass (`_chunk_forward`,
+    `_chunk_pullback`); the costs of all cases come from those forward passes. Memory: each
+    device holds its chunk's residuals from its forward pass to its reverse pass, as the reverse
+    pass of one program over the chunk does."""
+    n = cases.n_cases
+
+    def forward(start, device):
+        idx, _ = _chunk_rows(start, size, n)
+        arrays, static = eqx.partition((z, cases.take(idx)), eqx.is_array)
+        return _chunk_forward(config, *eqx.combine(jax.device_put(arrays, device), static))
+
+    kept = _on_devices(forward, starts, devices[: len(starts)])
+    # the chunks in order, the last one's filling dropped: every case once
+    costs = jax.tree.map(
+        lambda *xs: jnp.asarray(np.concatenate([np.asarray(x) for x in xs])[:n]),
+        *[c for c, _ in kept],
+    )
+    value, cotangent = _costs_cotangent(config, costs, ref)
+
+    def backward(i, device):
+        idx, live = _chunk_rows(starts[i], size, n)
+        part = jax.tree.map(
+            lambda c: jax.device_put(jnp.where(live, c[idx], 0.0), device), cotangent
+        )
+        return jax.device_get(_chunk_pullback(kept[i][1], part))
+
+    grads = _on_devices(backward, list(range(len(starts))), devices[: len(starts)])
     grad = jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
     return (value, costs), grad
 
