@@ -686,12 +686,11 @@ def sample_cases_at(
 
 
 def _sampler_size(n: int) -> int:
-    """The batch the sampler draws for ``n`` cases: the next power of two from 8 up to 64, then
-    the next multiple of 64, so that a few compiled samplers serve every batch size (the padding
-    repeats the last case and is dropped; a case is drawn the same in every batch)."""
-    if n <= 64:
-        return max(8, 1 << (n - 1).bit_length())
-    return -(-n // 64) * 64
+    """The batch the sampler draws for ``n`` cases: the next multiple of 64, so that one
+    compiled sampler serves every batch of up to 64 cases and a few serve the rest (the padding
+    repeats the last case and is dropped; a case is drawn the same in every batch, to the
+    rounding of its vectorised arithmetic)."""
+    return max(1, -(-n // 64)) * 64
 
 
 def _first_cases(batch: CaseBatch, n: int) -> CaseBatch:
