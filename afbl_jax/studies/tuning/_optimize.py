@@ -733,22 +733,29 @@ def chunked_value_and_grad(config: TuneConfig, z, cases, ref, devices=None):
     value, cotangent = _costs_cotangent(config, costs, ref)
 
     def work(start, device):
-        idx = np.arange(start, start + size) % n
-        live = jnp.asarray(np.arange(start, start + size) < n)
-        part = jax.tree.map(lambda c: jnp.where(live, c[idx], 0.0), cotangent)
+        idx = _chunk_rows(start, size, n)
+        part = _chunk_cotangent(cotangent, start, size, n)
         arrays, static = eqx.partition((z, cases.take(idx), part), eqx.is_array)
         args = eqx.combine(jax.device_put(arrays, device), static)
         return jax.device_get(_chunk_grad(config, *args))
 
-    grads = _on_devices(work, starts, devices[: len(starts)])
-    grad = jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
-    return (value, costs), grad
+    return (value, costs), _sum_grads(_on_devices(work, starts, devices[: len(starts)]))
 
 
-def _chunk_rows(start: int, size: int, n: int) -> tuple[np.ndarray, jax.Array]:
-    """Case indices of the chunk at ``start`` (filled up from the start past ``n``) and which
-    of them are its own (not filling)."""
-    return np.arange(start, start + size) % n, jnp.asarray(np.arange(start, start + size) < n)
+def _chunk_rows(start: int, size: int, n: int) -> np.ndarray:
+    """Case indices of the chunk at ``start``, filled up with cases from the start past ``n``."""
+    return np.arange(start, start + size) % n
+
+
+def _chunk_cotangent(cotangent, start: int, size: int, n: int):
+    """The chunk's rows of the cotangent of every case's costs, zero on its filling."""
+    idx, live = _chunk_rows(start, size, n), jnp.asarray(np.arange(start, start + size) < n)
+    return jax.tree.map(lambda c: jnp.where(live, c[idx], 0.0), cotangent)
+
+
+def _sum_grads(grads: list):
+    """The chunks' gradients summed in order."""
+    return jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
 
 
 def _kept_forward_value_and_grad(config: TuneConfig, z, cases, ref, starts, size, devices):
@@ -760,28 +767,23 @@ def _kept_forward_value_and_grad(config: TuneConfig, z, cases, ref, starts, size
     n = cases.n_cases
 
     def forward(start, device):
-        idx, _ = _chunk_rows(start, size, n)
-        arrays, static = eqx.partition((z, cases.take(idx)), eqx.is_array)
+        arrays, static = eqx.partition((z, cases.take(_chunk_rows(start, size, n))), eqx.is_array)
         return _chunk_forward(config, *eqx.combine(jax.device_put(arrays, device), static))
 
     kept = _on_devices(forward, starts, devices[: len(starts)])
     # the chunks in order, the last one's filling dropped: every case once
     costs = jax.tree.map(
-        lambda *xs: jnp.asarray(np.concatenate([np.asarray(x) for x in xs])[:n]),
+        lambda *xs: jax.device_put(np.concatenate([np.asarray(x) for x in xs])[:n]),
         *[c for c, _ in kept],
     )
     value, cotangent = _costs_cotangent(config, costs, ref)
 
     def backward(i, device):
-        idx, live = _chunk_rows(starts[i], size, n)
-        part = jax.tree.map(
-            lambda c: jax.device_put(jnp.where(live, c[idx], 0.0), device), cotangent
-        )
+        part = jax.device_put(_chunk_cotangent(cotangent, starts[i], size, n), device)
         return jax.device_get(_chunk_pullback(kept[i][1], part))
 
     grads = _on_devices(backward, list(range(len(starts))), devices[: len(starts)])
-    grad = jax.tree.map(lambda *g: jnp.asarray(sum(g[1:], g[0])), *grads)
-    return (value, costs), grad
+    return (value, costs), _sum_grads(grads)
 
 
 @eqx.filter_jit
