@@ -306,6 +306,7 @@ def test_lean_loop_work_queue_gives_every_group_its_own_steps():
         _decay_loop(2, extra=bad)
 
 
+@pytest.mark.default_codegen
 def test_lean_work_queue_equals_chunks_one_after_the_other(mc_cases):
     """Monte-Carlo cases with divergent members, groups of 2, chunks of 4 (two lanes over four
     groups): the work queue against the chunks one after the other, case by case and bitwise."""

@@ -81,6 +81,7 @@ def test_margin_sign_agrees_with_status_4096_case_study():
         assert np.array_equal(cols["failure_margin"][flyable] > 0, cols["status"][flyable] != 0)
 
 
+@pytest.mark.default_codegen
 def test_cases_from_variates_are_the_sampled_cases():
     dist = mc.default_distribution()
     u = mc.draw_variates(dist, 12, 5, start=7)

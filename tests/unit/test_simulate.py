@@ -188,6 +188,7 @@ def test_samples_after_an_early_stop_are_inf():
         assert np.all(np.isfinite(a[~dead])), name
 
 
+@pytest.mark.default_codegen
 @pytest.mark.parametrize("controller", ["fbl", "afbl"])
 def test_dense_saving_gives_the_saveat_samples(controller):
     """``saving="dense"`` evaluates the steps' own interpolants after the solve: the same
