@@ -17,6 +17,7 @@ from ..model import (
 from ._scenario import Scenario
 
 
+@eqx.filter_jit
 def trim_scenario(
     scenario: Scenario,
     vehicle: QuadrotorParams,
@@ -35,7 +36,8 @@ def trim_scenario(
     zero body rates (position, altitude and yaw as given), and its ``trim`` sets the
     controllers' initial states. Where no trim exists (``converged`` False) the start is level
     with the hover thrust m g commanded (the case is outside the flight envelope:
-    `afbl_jax.model.envelope_margin`). Pure and jittable (vmap over cases).
+    `afbl_jax.model.envelope_margin`). Pure, jitted (one compiled program per structure of
+    its arguments) and vmappable over cases.
     """
     model = vehicle if model is None else model
     aero = make_aerodynamics(aerodynamics)

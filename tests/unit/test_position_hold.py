@@ -74,6 +74,7 @@ def test_trim_converges_in_float32():
     follows the dtype) and matches the float64 trim to float32 accuracy."""
     vehicle = A.QuadrotorParams(**ROTOR).with_thrust_to_weight(2.5)
 
+    @jax.jit  # one program per dtype, not one per operation
     def trim(v):
         wind = jnp.array([v, 0.5 * v, 0.0])
         return solve_trim(vehicle, vehicle, RotorDrag(), wind, jnp.zeros(3), 1.2 * vehicle.m)
@@ -236,6 +237,7 @@ def test_envelope_boundary_agrees_with_brute_force(coefficients, payload):
     speeds = np.arange(np.floor(boundary) - 1.5, np.floor(boundary) + 2.01, 0.5)
     loop = ClosedLoop.make(A.FBLPID(), aerodynamics="rotor_drag", position_loop=A.PositionHold())
 
+    @jax.jit
     @jax.vmap
     def fly(v):
         sc = _steady(v, payload, t1=150.0)
