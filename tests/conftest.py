@@ -22,11 +22,11 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 # optimisation passes (the same HLO programs and IEEE arithmetic, generated faster and run
 # slower) and with its classic code generator instead of its fusion emitters (the default),
 # in this process and, through the environment, in its subprocesses. The classic generator
-# compiles a solve about a quarter faster, but it does not keep the rounding of an operation
-# the same between programs of different shapes: the tests that assert two different programs
-# agree bit for bit are marked `default_codegen`, left out here and run in one subprocess with
-# XLA's default code generator (`AFBL_TEST_CODEGEN=default`, in which every test runs with it)
-# by tests/integration/test_default_codegen.py.
+# compiles faster, but it does not keep the rounding of an operation the same between
+# programs of different shapes: the tests that assert two different programs agree bit for
+# bit are marked `default_codegen`, left out here and run in one subprocess with XLA's
+# default code generator by tests/integration/test_default_codegen.py
+# (`AFBL_TEST_CODEGEN=default` runs every test with it).
 TEST_XLA_FLAGS = ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true")
 CODEGEN_ENV = "AFBL_TEST_CODEGEN"
 CLASSIC_CODEGEN_FLAG = "--xla_cpu_use_fusion_emitters=false"
