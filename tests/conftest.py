@@ -130,7 +130,7 @@ def pytest_collection_modifyitems(config, items):
         left_out = [item for item in items if item.get_closest_marker("default_codegen")]
         if left_out:
             config.hook.pytest_deselected(items=left_out)
-            items[:] = [item for item in items if not item.get_closest_marker("default_codegen")]
+            items[:] = [item for item in items if item not in left_out]
     seconds = _recorded_file_seconds()
     # stable: files stay whole, the unknown ones after the known ones
     items.sort(key=lambda item: -seconds.get(item.path.name, -1.0))

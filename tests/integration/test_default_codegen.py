@@ -15,7 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ..conftest import CLASSIC_CODEGEN_FLAG, CODEGEN_ENV
+from ..conftest import CODEGEN_ENV
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,9 +26,7 @@ def test_bitwise_checks_with_xlas_default_code_generator():
         for k, v in os.environ.items()
         if not k.startswith(("PYTEST_", "AFBL_TEST_COMPILE_LOG"))
     }
-    env[CODEGEN_ENV] = "default"
-    flags = os.environ.get("XLA_FLAGS", "").split()
-    env["XLA_FLAGS"] = " ".join(f for f in flags if f != CLASSIC_CODEGEN_FLAG)
+    env[CODEGEN_ENV] = "default"  # its conftest drops the classic code generator's flag
     command = [
         sys.executable,
         "-m",
