@@ -30,6 +30,7 @@ from afbl_jax.studies.tuning import (
 )
 from afbl_jax.studies.tuning._objective import case_costs
 from afbl_jax.studies.tuning._optimize import (
+    LS_INCREASE,
     _costs,
     _costs_cotangent,
     _on_devices,
@@ -201,6 +202,26 @@ def test_lbfgs_step_is_traced_once():
         z, s = step(z, s)
     assert len(traces) == 1
     assert float(f(z)) < 12.0  # it descends (f = 12 at z = 0)
+
+
+def test_lbfgs_search_starts_at_the_quasi_newton_step_after_an_accepted_step(tuners):
+    """After an accepted L-BFGS step the next line search starts at a = 1 (the curvature
+    memory scales the direction), not at LS_INCREASE times the step just accepted; after a
+    search that found no step, the next starts below its last trial."""
+    tuner = tuners["lbfgs"]
+    z, state = tuner.init()
+    accepted = 0
+    for _ in range(3):
+        before = float(optax.tree_utils.tree_get(state, "learning_rate"))
+        z, state, *_ = tuner._lbfgs_iterate(z, state)
+        rate = float(optax.tree_utils.tree_get(state, "learning_rate"))
+        first_trial = min(LS_INCREASE * rate, 1.0)  # optax's start of the next search
+        if float(optax.tree_utils.tree_get(state, "decrease_error")) <= 0.0:
+            accepted += 1
+            assert first_trial == 1.0
+        else:
+            assert first_trial < min(LS_INCREASE * before, 1.0)
+    assert accepted >= 1
 
 
 @pytest.mark.slow

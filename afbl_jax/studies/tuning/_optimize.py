@@ -7,7 +7,8 @@ gain vector z (`GainSpace.log_gains`), a wall-time budget, checkpoints and exact
   ``linesearch_steps`` trials) on the fixed training set. When no trial decreases enough the
   iterate stays (the objective never goes up), the curvature memory is dropped (the next
   direction is steepest descent: a direction from a poor memory need not descend) and the
-  next search starts below the last trial step. A trial is a forward evaluation of the
+  next search starts below the last trial step; after an accepted step the next search starts
+  at the quasi-Newton step a = 1. A trial is a forward evaluation of the
   objective; after the step one value-and-gradient at the new point serves as the next
   iteration's start, so an iteration costs at most ``linesearch_steps`` + 1 forward passes,
   one of them with its gradient (recorded per iteration as ``evaluations``).
@@ -77,9 +78,9 @@ CHANNELS = ("phi", "theta", "psi", "z")
 LS_DECREASE = 0.3
 """Factor of the L-BFGS trial step after each rejected trial."""
 LS_INCREASE = 3.0
-"""Factor of the first trial step of an L-BFGS iteration over the step accepted before (at
-most 1, the quasi-Newton step): after a search that had to shrink, the steps grow back within
-a few iterations."""
+"""Factor of optax's first trial step over the last one (at most 1, the quasi-Newton step):
+after a search that found no step, the next starts at LS_INCREASE * LS_DECREASE times its last
+trial; after an accepted step the next search starts at 1."""
 
 
 @dataclass(frozen=True)
@@ -407,6 +408,13 @@ class Tuner:
             )
             self._start = (value, grad)
             return z, state, float(value), gnorm, trials
+        # the curvature memory scales the next direction, so its search starts at the
+        # quasi-Newton step a = 1 (Nocedal & Wright, Numerical Optimization, sec. 3.5), not at
+        # LS_INCREASE times the step accepted here (optax's start, made for gradient descent)
+        rate = optax.tree_utils.tree_get(new_state, "learning_rate")
+        new_state = optax.tree_utils.tree_set(
+            new_state, learning_rate=jnp.full_like(rate, 1.0 / LS_INCREASE)
+        )
         t = time.perf_counter()
         (new_value, _), new_grad = self.value_and_grad(new_z)
         jax.block_until_ready(new_grad)
