@@ -367,6 +367,52 @@ def render_tuning_controllers(doc: dict) -> str:
     return _fence(table) + "\n\n" + provenance_line(doc)
 
 
+def render_tune_run(doc: dict) -> str:
+    """One recorded `afbl tune`: the training size, the iterations its time budget held, the
+    training objective, and the held-out statistics of the paper's and the tuned gains
+    (evaluation.json), with the command's wall time."""
+    e = _files(doc, "evaluation.json")
+    cfg = e["meta"]["config"]
+    iterations = sum(1 for line in doc["stdout"].splitlines() if re.match(r"iteration \d+/", line))
+    wall = doc["provenance"].get("wall_s")
+    budget = cfg.get("time_budget")
+    run = [
+        [
+            str(cfg["n_cases"]),
+            cfg["objective"]["dtype"],
+            "-" if budget is None else f"{budget:g}",
+            str(iterations),
+            f"{e['initial_loss']:.4f} -> {e['final_loss']:.4f}",
+            "-" if wall is None else f"{wall:.0f}",
+        ]
+    ]
+    head = ["training cases", "dtype", "budget s", "iterations", "objective", "command wall s"]
+    rows = []
+    for gains in ("paper", "tuned"):
+        h = e["heldout"][gains]
+        lo, hi = h["failure_wilson95"]
+        rows.append(
+            [
+                gains,
+                f"{h['ise']['p50']:.3e}",
+                f"{h['ise']['cvar90']:.3e}",
+                f"{h['effort']['p50']:.2f}",
+                f"{h['failures']} / {h['n_cases']} ({100 * lo:.2f}-{100 * hi:.2f} %)",
+            ]
+        )
+    held = ["gains", "ISE P50", "ISE CVaR0.9", "effort P50", "failures (95 % Wilson)"]
+    n_out = e["heldout"]["paper"]["outside_envelope"]
+    return (
+        _table(head, run, "rlrrrr")
+        + "\n\n"
+        + f"Held-out cases inside the flight envelope ({n_out} outside it left out), sensor "
+        + "noise on; ISE = ISE_att + ISE_alt [rad² s + m² s]:\n\n"
+        + _table(held, rows, "lrrrr")
+        + "\n\n"
+        + provenance_line(doc, load=True)
+    )
+
+
 def render_unmodeled(doc: dict) -> str:
     """The grid tables `afbl unmodeled` prints (its standard output after the progress lines)."""
     text = doc["stdout"]
@@ -533,6 +579,7 @@ RENDERERS: dict[str, Callable[[dict], str]] = {
     "gradient-cost": render_gradient_cost,
     "tuning-optimizers": render_tuning_optimizers,
     "tuning-controllers": render_tuning_controllers,
+    "tune-run": render_tune_run,
     "unmodeled-grid": render_unmodeled,
     "test-times": render_test_times,
     "study-time": render_study_time,
